@@ -1,0 +1,77 @@
+"""Per-process service state shared by the routes (settings, DB sessions, auth, broker)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from typing import Optional
+
+from celery import Celery
+from fastapi import Request
+from sqlalchemy.orm import sessionmaker
+
+from .auth import TokenVerifier, load_secret
+from .db import session_factory
+from .queue import make_celery
+from .settings import Settings
+
+
+class JobCache:
+    """Micro-cache of rendered ``GET /jobs/{id}`` bodies: many pollers of one job cost one DB read
+    per ``NEPF_POLL_CACHE_S`` (the worker writes progress about once a second anyway)."""
+
+    def __init__(self, ttl_s: float) -> None:
+        self.ttl_s = ttl_s
+        self._d: dict[str, tuple[float, str, bytes]] = {}
+        self._lock = threading.Lock()
+
+    def get(self, job_id: str, owner: str) -> Optional[bytes]:
+        hit = self._d.get(job_id)
+        if hit is None or hit[0] < time.monotonic() or hit[1] != owner:
+            return None
+        return hit[2]
+
+    def put(self, job_id: str, owner: str, body: bytes) -> None:
+        if self.ttl_s <= 0:
+            return
+        with self._lock:
+            if len(self._d) > 5000:
+                now = time.monotonic()
+                self._d = {k: v for k, v in self._d.items() if v[0] >= now}
+            self._d[job_id] = (time.monotonic() + self.ttl_s, owner, body)
+
+    def drop(self, job_id: str) -> None:
+        with self._lock:
+            self._d.pop(job_id, None)
+
+
+@dataclass
+class Service:
+    settings: Settings
+    Session: sessionmaker
+    verifier: TokenVerifier
+    secret: bytes
+    celery: Celery
+    reconciler: Optional[object] = None
+    job_cache: "JobCache" = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        if self.job_cache is None:
+            self.job_cache = JobCache(self.settings.poll_cache_s)
+
+    @classmethod
+    def create(cls, settings: Settings) -> "Service":
+        settings.data_path.mkdir(parents=True, exist_ok=True)
+        settings.jobs_path.mkdir(parents=True, exist_ok=True)
+        settings.uploads_path.mkdir(parents=True, exist_ok=True)
+        Session = session_factory(settings.db_url)
+        return cls(settings=settings, Session=Session,
+                   verifier=TokenVerifier(Session, settings.auth_cache_s),
+                   secret=load_secret(settings.data_path, settings.secret_key),
+                   celery=make_celery(settings, "nepf-api"))
+
+
+async def get_service(request: Request) -> Service:
+    # async: a sync dependency would cost a thread-pool hop on every request
+    return request.app.state.service

@@ -1,0 +1,383 @@
+"""Tables, ratios and plots of a benchmark (``results.json`` -> ``table.md``, ``error_vs_time_<scene>.png``).
+
+``python -m bench report DIR [--target-psnr X]`` rebuilds them from ``DIR/results.json``.
+
+Definitions (also written into ``table.md``):
+
+* **final** test numbers come from the last ``kind: "test"`` record (``final: true``) of the
+  run's ``metrics.jsonl``; PSNR is of sRGB values, *masked* = GT foreground pixels only.
+* **Chamfer** is the final model's, re-evaluated at ``chamfer_resolution``³ with
+  ``chamfer_samples`` samples per mesh, in unit-sphere units (world / scene scale); when that
+  failed or was skipped the last in-training value (128³) is shown, marked ``*``.
+* **wall_s** is training time only (evaluation, checkpoints and Chamfer meshes excluded).
+* **time to reach P**: the first test record whose masked test PSNR >= P; "not reached" otherwise.
+  The resolution is the evaluation period (``--eval-every``).
+* **X** (table): ``--target-psnr`` or, per scene, the lowest final masked test PSNR among the
+  scene's rows, so that every row has a time.
+* **fast vs paper**: P = the best test PSNR ``paper`` reached; times of both and
+  ratio = t_paper / t_fast (> 1: fast gets there sooner).
+* **adaptive vs all_on**: P = min(final_adaptive, final_all_on); times of both, the final
+  PSNR difference (adaptive - all_on) and time saved = (t_all_on - t_adaptive) / t_all_on.
+* With ``--repeats N`` > 1 every number is the median over repeats (pairs are matched by
+  repeat index).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import sys
+from pathlib import Path
+
+# ----------------------------------------------------------------------------------------------
+# per-run quantities
+# ----------------------------------------------------------------------------------------------
+
+
+def _curve(rec: dict) -> list[dict]:
+    return [t for t in rec.get("test_curve") or [] if t.get("wall_s") is not None]
+
+
+def final_test(rec: dict) -> dict:
+    """The final held-out record of a run ({} when it has none)."""
+    c = _curve(rec)
+    finals = [t for t in c if t.get("final")]
+    return (finals or c or [{}])[-1]
+
+
+def best_psnr(rec: dict) -> float | None:
+    vals = [t["test_psnr"] for t in _curve(rec) if _finite(t.get("test_psnr"))]
+    return max(vals) if vals else None
+
+
+def time_to_reach(rec: dict, target: float | None) -> float | None:
+    """First ``wall_s`` at which masked test PSNR >= ``target`` (None: not reached)."""
+    if target is None or not _finite(target):
+        return None
+    for t in _curve(rec):
+        if _finite(t.get("test_psnr")) and t["test_psnr"] >= target - 1e-9:
+            return float(t["wall_s"])
+    return None
+
+
+def chamfer_of(rec: dict) -> tuple[float | None, bool]:
+    """``(chamfer, is_final_fine)``: the fine final Chamfer, else the last in-training one."""
+    if _finite(rec.get("chamfer_final")):
+        return rec["chamfer_final"], True
+    vals = [t["chamfer"] for t in _curve(rec) if _finite(t.get("chamfer"))]
+    return (vals[-1], False) if vals else (None, False)
+
+
+def _finite(x) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+def _median(xs):
+    xs = [x for x in xs if _finite(x)]
+    return statistics.median(xs) if xs else None
+
+
+# ----------------------------------------------------------------------------------------------
+# aggregation
+# ----------------------------------------------------------------------------------------------
+
+def _groups(runs: list[dict]) -> dict[tuple, list[dict]]:
+    g: dict[tuple, list[dict]] = {}
+    for r in runs:
+        g.setdefault((r["scene"], r["config"], r["variant"]), []).append(r)
+    for v in g.values():
+        v.sort(key=lambda r: r.get("repeat", 0))
+    return g
+
+
+def _median_time(recs: list[dict], target_of) -> dict:
+    """Median time to reach a per-repeat target over repeats, with the reached count."""
+    ts = [time_to_reach(r, target_of(r)) for r in recs]
+    reached = [t for t in ts if t is not None]
+    return {"t": statistics.median(reached) if len(reached) == len(ts) and ts else None,
+            "reached": len(reached), "n": len(ts), "per_repeat": ts}
+
+
+def summarize(results: dict, target_psnr: float | None = None) -> dict:
+    """Rows (one per scene/config/variant, medians over repeats) and the comparisons."""
+    runs = results.get("runs", [])
+    groups = _groups(runs)
+    rows = []
+    for (scene, config, variant), recs in groups.items():
+        fins = [final_test(r) for r in recs]
+        chs = [chamfer_of(r) for r in recs]
+        steps = _median([r.get("steps") for r in recs])
+        wall = _median([r.get("train_wall_s") for r in recs])
+        rows.append({
+            "scene": scene, "config": config, "variant": variant, "n": len(recs),
+            "status": ",".join(sorted({str(r.get("status")) for r in recs})),
+            "errors": [r["error"] for r in recs if r.get("error")],
+            "budget_s": recs[0].get("budget_s"),
+            "steps": steps, "train_wall_s": wall,
+            "test_psnr": _median([f.get("test_psnr") for f in fins]),
+            "test_psnr_full": _median([f.get("test_psnr_full") for f in fins]),
+            "albedo_psnr": _median([f.get("albedo_psnr") for f in fins]),
+            "best_test_psnr": _median([best_psnr(r) for r in recs]),
+            "chamfer": _median([c for c, _ in chs]), "chamfer_fine": all(fine for _, fine in chs),
+            "chamfer_resolution": recs[0].get("chamfer_resolution"),
+            "peak_rss_mb": _median([r.get("peak_rss_mb_process") for r in recs]),
+            "peak_rss_mb_fit": _median([r.get("peak_rss_mb_fit") for r in recs]),
+            "s_per_step": _median([r["train_wall_s"] / r["steps"] for r in recs
+                                   if _finite(r.get("train_wall_s")) and r.get("steps")]),
+            "nonfinite_steps": _median([r.get("nonfinite_steps") for r in recs]),
+            "cpu_util": _median([(r.get("cpu_user_s", 0) + r.get("cpu_sys_s", 0)) / r["process_wall_s"]
+                                 for r in recs if r.get("process_wall_s")]),
+            "loadavg_start": recs[0].get("loadavg_start"),
+        })
+    # common target X per scene
+    for row in rows:
+        if target_psnr is not None:
+            row["target_X"] = target_psnr
+        else:
+            finals = [r["test_psnr"] for r in rows if r["scene"] == row["scene"] and _finite(r["test_psnr"])]
+            row["target_X"] = min(finals) if finals else None
+        tt = _median_time(groups[(row["scene"], row["config"], row["variant"])], lambda r, x=row["target_X"]: x)
+        row["t_to_X"], row["t_to_X_reached"] = tt["t"], f"{tt['reached']}/{tt['n']}"
+
+    fast_vs_paper = []
+    scenes = sorted({k[0] for k in groups})
+    variants = sorted({k[2] for k in groups})
+    for scene in scenes:
+        for variant in variants:
+            fp, pp = groups.get((scene, "fast", variant)), groups.get((scene, "paper", variant))
+            if not fp or not pp:
+                continue
+            pairs = list(zip(pp, fp))
+            per = []
+            for p, f in pairs:
+                target = best_psnr(p)
+                tp, tf = time_to_reach(p, target), time_to_reach(f, target)
+                per.append({"paper_best": target, "t_paper": tp, "t_fast": tf,
+                            "ratio": (tp / tf) if tp is not None and tf else None,
+                            "fast_final": final_test(f).get("test_psnr"), "fast_best": best_psnr(f)})
+            fast_vs_paper.append({
+                "scene": scene, "variant": variant, "n": len(per), "per_repeat": per,
+                "paper_best": _median([x["paper_best"] for x in per]),
+                "t_paper": _median([x["t_paper"] for x in per]),
+                "t_fast": _median([x["t_fast"] for x in per]) if all(x["t_fast"] is not None for x in per) else None,
+                "fast_reached": sum(x["t_fast"] is not None for x in per),
+                "ratio": _median([x["ratio"] for x in per]) if all(x["ratio"] is not None for x in per) else None,
+                "fast_best": _median([x["fast_best"] for x in per]),
+                "budget_paper": pp[0].get("budget_s"), "budget_fast": fp[0].get("budget_s")})
+
+    adaptive_vs_all_on = []
+    configs = sorted({k[1] for k in groups})
+    for scene in scenes:
+        for config in configs:
+            ap, bp = groups.get((scene, config, "adaptive")), groups.get((scene, config, "all_on"))
+            if not ap or not bp:
+                continue
+            per = []
+            for a, b in zip(ap, bp):
+                fa, fb = final_test(a).get("test_psnr"), final_test(b).get("test_psnr")
+                target = min(fa, fb) if _finite(fa) and _finite(fb) else None
+                ta, tb = time_to_reach(a, target), time_to_reach(b, target)
+                per.append({"target": target, "final_adaptive": fa, "final_all_on": fb,
+                            "diff": (fa - fb) if target is not None else None, "t_adaptive": ta, "t_all_on": tb,
+                            "saved_pct": (100.0 * (tb - ta) / tb) if ta is not None and tb else None,
+                            "s_per_step_adaptive": _sps(a), "s_per_step_all_on": _sps(b),
+                            "chamfer_adaptive": chamfer_of(a)[0], "chamfer_all_on": chamfer_of(b)[0],
+                            "albedo_adaptive": final_test(a).get("albedo_psnr"),
+                            "albedo_all_on": final_test(b).get("albedo_psnr"),
+                            "left_out": _left_out(a)})
+            row = {"scene": scene, "config": config, "n": len(per), "per_repeat": per}
+            for k in ("target", "final_adaptive", "final_all_on", "diff", "t_adaptive", "t_all_on", "saved_pct",
+                      "s_per_step_adaptive", "s_per_step_all_on", "chamfer_adaptive", "chamfer_all_on",
+                      "albedo_adaptive", "albedo_all_on"):
+                vals = [x[k] for x in per]
+                row[k] = _median(vals) if all(v is not None for v in vals) else None
+            row["left_out"] = per[0]["left_out"] if per else []
+            adaptive_vs_all_on.append(row)
+    return {"rows": rows, "fast_vs_paper": fast_vs_paper, "adaptive_vs_all_on": adaptive_vs_all_on}
+
+
+def _sps(r: dict):
+    return r["train_wall_s"] / r["steps"] if _finite(r.get("train_wall_s")) and r.get("steps") else None
+
+
+def _left_out(r: dict) -> list[str]:
+    """Short list of what adaptivity decided (``report.json`` decisions), for the comparison table."""
+    rep = r.get("report") or {}
+    dec = rep.get("decisions") if isinstance(rep, dict) else None
+    out = []
+    for d in dec or []:
+        if isinstance(d, dict) and d.get("decision"):
+            out.append(f"{d['decision']}={d.get('value')}")
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# writers
+# ----------------------------------------------------------------------------------------------
+
+def _fmt(x, nd=2, none="n/a"):
+    if x is None:
+        return none
+    if isinstance(x, float) and not math.isfinite(x):
+        return str(x)
+    if isinstance(x, (int, float)):
+        return f"{x:.{nd}f}"
+    return str(x)
+
+
+def _la(x):
+    return "n/a" if not x else "/".join(f"{v:.1f}" for v in x)
+
+
+def _fmt_t(x):
+    return "not reached" if x is None else f"{x:.0f}"
+
+
+def write_table(results: dict, summary: dict, path: Path) -> None:
+    m = results.get("machine", {})
+    L = ["# NePF benchmark", "",
+         f"Command: `{results.get('command', '')}`  ", f"Working directory: `{results.get('cwd', '')}`  ",
+         f"Started {results.get('started', '?')}, finished {results.get('finished', '?')}.", "",
+         "Machine: " + ", ".join(f"{k} {m.get(k)}" for k in ("cpu_model", "cpu_count", "cpus_allowed", "mem_total_mb",
+                                                              "torch", "threads", "cgroup_cpu_max") if k in m)
+         + f"; load average (1, 5, 15 min) at start {_la(m.get('loadavg'))} and end {_la(m.get('loadavg_end'))}.", ""]
+    L += ["## Runs", "",
+          "| scene | config | variant | n | status | budget s | steps | train wall s | test PSNR masked | "
+          "test PSNR full | albedo PSNR | Chamfer (unit sphere) | peak RSS MB | s/step | NaN steps | X (dB) | "
+          "time to X (s) | CPU util |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in sorted(summary["rows"], key=lambda r: (r["scene"], r["config"], r["variant"])):
+        ch = _fmt(r["chamfer"], 5) + ("" if r["chamfer_fine"] or r["chamfer"] is None else "*")
+        tx = _fmt_t(r["t_to_X"]) + (f" ({r['t_to_X_reached']})" if r["n"] > 1 else "")
+        L.append(f"| {r['scene']} | {r['config']} | {r['variant']} | {r['n']} | {r['status']} | {_fmt(r['budget_s'], 0)} | "
+                 f"{_fmt(r['steps'], 0)} | {_fmt(r['train_wall_s'], 0)} | {_fmt(r['test_psnr'])} | "
+                 f"{_fmt(r['test_psnr_full'])} | {_fmt(r['albedo_psnr'])} | {ch} | {_fmt(r['peak_rss_mb'], 0)} | "
+                 f"{_fmt(r['s_per_step'], 3)} | {_fmt(r['nonfinite_steps'], 0)} | {_fmt(r['target_X'])} | {tx} | "
+                 f"{_fmt(r['cpu_util'], 2)} |")
+    res = {r["chamfer_resolution"] for r in summary["rows"]}
+    L += ["", f"Chamfer: final model, marching cubes at {sorted(x for x in res if x)}³, "
+              "100k-sample default per mesh, unit-sphere units; `*` = last in-training value (128³) because "
+              "the fine one failed or was skipped. Peak RSS: the whole run process (os.wait4), including the "
+              "final Chamfer mesh. X: `--target-psnr` or the lowest final masked PSNR of the scene's rows. "
+              "CPU util: CPU seconds / process seconds of the run (at most the thread count; lower means "
+              "the machine was shared or the run waited on I/O).", ""]
+    errs = [(r["scene"], r["config"], r["variant"], e) for r in summary["rows"] for e in r["errors"]]
+    if errs:
+        L += ["Errors:", ""] + [f"* {s}/{c}/{v}: {e}" for s, c, v, e in errs] + [""]
+    if summary["fast_vs_paper"]:
+        L += ["## fast vs paper: time to reach paper's best test PSNR", "",
+              "| scene | variant | paper best (dB) | paper time (s) | fast time (s) | ratio paper/fast | "
+              "fast best (dB) | budgets paper/fast (s) |", "|---|---|---|---|---|---|---|---|"]
+        for x in summary["fast_vs_paper"]:
+            rt = _fmt(x["ratio"]) + "x" if x["ratio"] is not None else "n/a (fast did not reach it)"
+            reached = "" if x["n"] == 1 else f" ({x['fast_reached']}/{x['n']})"
+            L.append(f"| {x['scene']} | {x['variant']} | {_fmt(x['paper_best'])} | {_fmt_t(x['t_paper'])} | "
+                     f"{_fmt_t(x['t_fast'])}{reached} | "
+                     f"{rt} | {_fmt(x['fast_best'])} | {_fmt(x['budget_paper'], 0)}/{_fmt(x['budget_fast'], 0)} |")
+        L.append("")
+    if summary["adaptive_vs_all_on"]:
+        L += ["## adaptive vs all_on: time to reach the same test PSNR", "",
+              "| scene | config | target (dB) | final adaptive | final all_on | diff (dB) | t adaptive (s) | "
+              "t all_on (s) | time saved | s/step adaptive / all_on | Chamfer adaptive / all_on | "
+              "albedo adaptive / all_on | adaptive decisions |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for x in summary["adaptive_vs_all_on"]:
+            L.append(f"| {x['scene']} | {x['config']} | {_fmt(x['target'])} | {_fmt(x['final_adaptive'])} | "
+                     f"{_fmt(x['final_all_on'])} | {_fmt(x['diff'], 2)} | {_fmt_t(x['t_adaptive'])} | "
+                     f"{_fmt_t(x['t_all_on'])} | {_fmt(x['saved_pct'], 0)}% | "
+                     f"{_fmt(x['s_per_step_adaptive'], 3)} / {_fmt(x['s_per_step_all_on'], 3)} | "
+                     f"{_fmt(x['chamfer_adaptive'], 5)} / {_fmt(x['chamfer_all_on'], 5)} | "
+                     f"{_fmt(x['albedo_adaptive'])} / {_fmt(x['albedo_all_on'])} | "
+                     f"{'; '.join(x['left_out']) or '-'} |")
+        L.append("")
+    real = [r for r in results.get("runs", []) if r.get("mode") == "real"]
+    if real:
+        L += ["## Real data", ""]
+        for r in real:
+            sp = r.get("split") or {}
+            me = r.get("mesh") or {}
+            L.append(f"* {r['id']}: {sp.get('n_train')} train / {sp.get('n_test')} test views "
+                     f"(held out {sp.get('test_views')}), {sp.get('resolution')} px (downscale {sp.get('downscale')}); "
+                     f"final masked test PBR PSNR {_fmt(final_test(r).get('test_psnr'))} dB; mesh "
+                     f"{me.get('path', me.get('error'))} ({me.get('faces')} faces)")
+        L.append("")
+    L += ["## Definitions", "", (__doc__ or "").split("Definitions (also written into ``table.md``):")[-1].strip(), ""]
+    path.write_text("\n".join(L))
+
+
+def plot_scene(results: dict, scene: str, out_png: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [r for r in results.get("runs", []) if r["scene"] == scene]
+    groups = _groups(runs)
+    panels = [("test_psnr", "test PBR PSNR, masked (dB)"), ("chamfer", "Chamfer (unit sphere)"),
+              ("albedo_psnr", "albedo PSNR, aligned (dB)")]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for i, ((_, config, variant), recs) in enumerate(sorted(groups.items())):
+        col = colors[i % len(colors)]
+        label = config if variant == "adaptive" and len({k[2] for k in groups}) == 1 else f"{config} / {variant}"
+        for j, r in enumerate(recs):
+            c = _curve(r)
+            for ax, (key, _) in zip(axes, panels):
+                pts = [(t["wall_s"], t[key]) for t in c if _finite(t.get(key))]
+                if pts:
+                    ax.plot(*zip(*pts), marker="o", ms=3, color=col, alpha=1.0 if j == 0 else 0.35,
+                            lw=1.5 if j == 0 else 0.8, label=label if j == 0 else None)
+            if _finite(r.get("chamfer_final")):
+                axes[1].plot([r.get("train_wall_s") or (c[-1]["wall_s"] if c else 0)], [r["chamfer_final"]],
+                             marker="*", ms=11, color=col, ls="none",
+                             label=f"{label} final {r.get('chamfer_resolution')}³" if j == 0 else None)
+    for ax, (key, ylabel) in zip(axes, panels):
+        ax.set_xlabel("training wall time (s)")
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        if key == "chamfer" and ax.lines:
+            ax.set_yscale("log")
+        if ax.lines:
+            ax.legend(fontsize=8)
+    fig.suptitle(f"{scene}: held-out error against training time")
+    fig.tight_layout()
+    fig.savefig(out_png, dpi=90)
+    plt.close(fig)
+
+
+def write_all(results: dict, out_dir: Path, target_psnr: float | None = None) -> dict:
+    """``results.json`` (runs + summary), ``table.md``, ``error_vs_time_<scene>.png``."""
+    out_dir = Path(out_dir)
+    if target_psnr is None:
+        target_psnr = (results.get("settings") or {}).get("target_psnr")
+    summary = summarize(results, target_psnr)
+    results["summary"] = summary
+    tmp = out_dir / "results.json.tmp"
+    tmp.write_text(json.dumps(results, indent=1, default=str))
+    tmp.replace(out_dir / "results.json")
+    write_table(results, summary, out_dir / "table.md")
+    (out_dir / "command.txt").write_text(results.get("command", "") + "\n")
+    (out_dir / "machine.json").write_text(json.dumps(results.get("machine", {}), indent=1))
+    for scene in sorted({r["scene"] for r in results.get("runs", [])}):
+        try:
+            plot_scene(results, scene, out_dir / f"error_vs_time_{scene}.png")
+        except Exception as e:  # a plot never loses the numbers
+            (out_dir / f"error_vs_time_{scene}.txt").write_text(f"plot failed: {type(e).__name__}: {e}\n")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m bench report", description="rebuild table.md and plots")
+    p.add_argument("results_dir")
+    p.add_argument("--target-psnr", type=float, default=None)
+    a = p.parse_args(argv)
+    d = Path(a.results_dir)
+    results = json.loads((d / "results.json").read_text())
+    write_all(results, d, a.target_psnr)
+    print((d / "table.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

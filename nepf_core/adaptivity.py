@@ -1,0 +1,207 @@
+"""Leaving out what a scene does not need, with every decision recorded in ``report.json``.
+
+Rules (each decision is logged with its step and reason):
+* **Masks.** With masks: mask BCE on, no background model, and (with an occupancy grid)
+  the grid starts from the masks' visual hull, so no samples fall outside the mask bounds.
+  Without masks: no mask loss, a background radiance model B(d) is on.
+* **Specular lobe.** Every ``check_every`` steps after a warm-up (``warmup_frac`` of the
+  run) we measure, at the max-weight points of the batch, the mean metallic and the share
+  of the surface PBR that comes from the GGX lobe (computed with and without it, no grad).
+  If metallic < ``metal_thr`` and the share < ``spec_thr`` for ``patience`` checks in a row,
+  the lobe is dropped. While it is off, the same statistics are still measured, and the
+  lobe comes back if the share would exceed ``2 spec_thr`` or the L_vol residual on the
+  brightest 5% of pixels exceeds ``highlight_ratio`` times the median residual.
+* **Hessian regulariser.** Only while the eikonal residual (EMA) is above ``eik_thr``.
+* **Iterations.** When the user did not fix the iteration count, stop when the held-out
+  PSNR has not improved by ``min_gain_db`` over ``plateau_patience`` evaluations.
+* **Empty space.** The occupancy grid skips it; we report the fraction of cells culled
+  (``occupied_fraction``) and the fraction of samples saved (``samples_saved_fraction``:
+  the running mean over training steps of the batch-mean share of each ray's ``[near, far]``
+  that the sampler skipped, i.e. at equal sampling density the share of samples not spent there;
+  per logged step as ``skipped_fraction`` in ``metrics.jsonl``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+
+class Adaptivity:
+    """Holds the switches and their history for one run."""
+
+    check_every = 100
+    warmup_frac = 0.1
+    metal_thr = 0.05
+    spec_thr = 0.02
+    patience = 3
+    highlight_ratio = 3.0
+    eik_thr = 0.05
+    min_gain_db = 0.1
+
+    def __init__(self, cfg, *, enabled: bool, iters_fixed: bool) -> None:
+        self.cfg = cfg
+        self.enabled = enabled
+        self.iters_fixed = iters_fixed
+        self.decisions: list[dict] = []
+        self.use_mask_loss = False
+        self.stop_requested = False
+        self._diffuse_streak = 0
+        self._eik_ema = None
+        self._best_psnr = -math.inf
+        self._evals_since_best = 0
+        self._hess_weight = cfg.loss.w_hessian
+        self._stats: dict = {}
+        self._occ_frac = None
+        self._skip_last = None
+        self._skip_sum, self._skip_n = 0.0, 0
+
+    # -- bookkeeping --
+    def record(self, decision: str, value, reason: str, step: int = 0) -> None:
+        self.decisions.append({"decision": decision, "value": value, "reason": reason, "step": step})
+
+    def state(self) -> dict:
+        return {"decisions": self.decisions, "specular": self.cfg.render.specular, "streak": self._diffuse_streak,
+                "eik_ema": self._eik_ema, "best": self._best_psnr if math.isfinite(self._best_psnr) else None,
+                "since_best": self._evals_since_best, "w_hessian": self.cfg.loss.w_hessian,
+                "skip_sum": self._skip_sum, "skip_n": self._skip_n}
+
+    def load_state(self, s: dict) -> None:
+        if not s:
+            return
+        self.decisions = s.get("decisions", self.decisions)
+        self.cfg.render.specular = s.get("specular", self.cfg.render.specular)
+        self._diffuse_streak = s.get("streak", 0)
+        self._eik_ema = s.get("eik_ema")
+        self._best_psnr = s.get("best") if s.get("best") is not None else -math.inf
+        self._evals_since_best = s.get("since_best", 0)
+        self.cfg.loss.w_hessian = s.get("w_hessian", self.cfg.loss.w_hessian)
+        self._skip_sum, self._skip_n = s.get("skip_sum", 0.0), s.get("skip_n", 0)
+
+    # -- before training --
+    def decide_before_training(self, scene) -> None:
+        if scene.has_masks:
+            self.use_mask_loss = self.cfg.loss.w_mask > 0
+            self.cfg.model.background = False
+            self.record("mask_loss", self.use_mask_loss, "the dataset has masks: mask BCE supervises the opacity")
+            self.record("background_model", False, "masked scene: everything outside the mask is empty")
+        else:
+            self.use_mask_loss = False
+            self.cfg.model.background = True
+            self.record("mask_loss", False, "the dataset has no masks: no mask loss")
+            self.record("background_model", True, "no masks: a background radiance B(d) explains non-object pixels")
+        if self.cfg.model.occupancy_resolution > 0:
+            self.record("empty_space_skipping", True,
+                        f"occupancy grid {self.cfg.model.occupancy_resolution}^3 refreshed from the SDF during training")
+        if not self.enabled:
+            self.record("adaptive", False, "adaptivity disabled: every term stays on")
+
+    def init_occupancy(self, model, scene) -> None:
+        from nepf_core.render.visual_hull import visual_hull_cells
+        if scene.has_masks:
+            hull = visual_hull_cells(scene, model.occupancy.cfg.resolution, device=model.hull.device)
+            if hull.any():
+                model.hull.copy_(hull)
+                model.occupancy.occ &= hull
+                self.record("visual_hull", True, f"no samples outside the mask bounds: cells outside the masks' visual "
+                            f"hull are empty ({1 - float(hull.float().mean()):.1%} of the grid culled)")
+            else:
+                self.record("visual_hull", False, "the masks' visual hull is empty (inconsistent masks/cameras?): not used")
+
+    def update_occupancy(self, model, step: int) -> None:
+        occ = model.occupancy
+        occ.update(model.sdf.sdf, float(model.deviation().detach()), step)
+        occ.occ &= model.hull
+        if hasattr(occ, "occupied_fraction"):
+            self._occ_frac = float(occ.occupied_fraction())
+
+    # -- during training --
+    def wants_specular_stats(self, step: int) -> bool:
+        return self.enabled and step > 0 and step % self.check_every == 0
+
+    def step_stats(self) -> dict:
+        s = dict(self._stats)
+        if self._occ_frac is not None:
+            s["occupied_fraction"] = self._occ_frac
+        if self._skip_last is not None:
+            s["skipped_fraction"] = self._skip_last
+        return s
+
+    def on_step(self, step: int, out, losses: dict) -> None:
+        eik = float(losses["loss_eik"].detach()) if "loss_eik" in losses else 0.0
+        self._eik_ema = eik if self._eik_ema is None else 0.95 * self._eik_ema + 0.05 * eik
+        skip = getattr(out, "skip_fraction", None)
+        if skip is not None and math.isfinite(skip):
+            self._skip_last = skip
+            self._skip_sum += skip
+            self._skip_n += 1
+        if not self.enabled:
+            return
+        total = self.cfg.train.iters
+        # Hessian only while the surface is rough
+        if self._hess_weight > 0 and step % self.check_every == 0:
+            want = self._eik_ema > self.eik_thr
+            on = self.cfg.loss.w_hessian > 0
+            if want != on:
+                self.cfg.loss.w_hessian = self._hess_weight if want else 0.0
+                self.record("hessian_loss", want, f"eikonal residual EMA {self._eik_ema:.3f} "
+                            f"{'>' if want else '<='} {self.eik_thr}", step)
+        if "specular" not in out.surf or step < self.warmup_frac * total:
+            return
+        surf_w = out.weight_sum.detach() > 0.5
+        if surf_w.sum() < 8:
+            return
+        metal = float(out.surf["metallic"].detach()[surf_w].mean())
+        share = float(out.surf["specular"][surf_w].mean())
+        self._stats = {"surf_metallic": metal, "specular_share": share}
+        if self.cfg.render.specular:
+            if metal < self.metal_thr and share < self.spec_thr:
+                self._diffuse_streak += 1
+                if self._diffuse_streak >= self.patience:
+                    self.cfg.render.specular = False
+                    self.record("specular_lobe", False, f"scene looks diffuse: mean metallic {metal:.3f} < {self.metal_thr}, "
+                                f"specular share {share:.3%} < {self.spec_thr:.0%} for {self.patience} checks", step)
+            else:
+                self._diffuse_streak = 0
+        elif share > 2 * self.spec_thr:
+            self.cfg.render.specular = True
+            self._diffuse_streak = 0
+            self.record("specular_lobe", True, f"specular share would be {share:.3%} > {2 * self.spec_thr:.0%}", step)
+
+    def on_highlight_residual(self, step: int, ratio: float) -> None:
+        if self.enabled and not self.cfg.render.specular and ratio > self.highlight_ratio:
+            self.cfg.render.specular = True
+            self._diffuse_streak = 0
+            self.record("specular_lobe", True, f"L_vol residual on the brightest 5% pixels is {ratio:.1f}x the median", step)
+
+    def on_test_eval(self, step: int, rec: dict) -> None:
+        v = rec.get("test_psnr")
+        if v is None or not math.isfinite(v):
+            return
+        if v > self._best_psnr + self.min_gain_db:
+            self._best_psnr = v
+            self._evals_since_best = 0
+        else:
+            self._evals_since_best += 1
+        if (self.enabled and not self.iters_fixed and self._evals_since_best >= self.cfg.train.plateau_patience
+                and not self.stop_requested):
+            self.stop_requested = True
+            self.record("early_stop", True, f"held-out PSNR plateaued: no gain > {self.min_gain_db} dB over "
+                        f"{self.cfg.train.plateau_patience} evaluations (best {self._best_psnr:.2f} dB)", step)
+
+    def write_report(self, path: Path, *, step: int, status: str, nonfinite: int) -> dict:
+        rep = {"status": status, "step": step, "nonfinite_steps": nonfinite, "decisions": self.decisions,
+               "final_switches": {"specular": self.cfg.render.specular, "mask_loss": self.use_mask_loss,
+                                  "background": self.cfg.model.background, "w_hessian": self.cfg.loss.w_hessian}}
+        if self._occ_frac is not None:
+            rep["occupied_fraction"] = self._occ_frac
+        if self._skip_n:
+            rep["samples_saved_fraction"] = self._skip_sum / self._skip_n
+            rep["samples_saved_note"] = ("mean over training steps and rays of the share of each ray's [near, far] in "
+                                         "the unit sphere that the occupancy grid skipped as empty (no samples there)")
+        Path(path).write_text(json.dumps(rep, indent=2))
+        return rep

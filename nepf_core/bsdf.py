@@ -1,0 +1,188 @@
+"""The NePF BSDF: Disney diffuse with retro-reflection plus a GGX specular lobe.
+
+Every term is a pure function of tensors with broadcastable shapes ``[..., k]``.
+Directions are unit vectors pointing *away* from the surface: ``l`` towards the light,
+``v`` towards the camera, ``n`` the outward normal; ``h = normalize(l + v)``.
+
+Paper (Sec. 3.3 and supplementary):
+    f_d     = c/pi (1 - f_l/2)(1 - f_v/2) + f_retro
+    f_retro = c/pi R (f_l + f_v + f_l f_v (R - 1)),   R = 2 r (h.v)^2
+    f_l     = (1 - n.l)^5,  f_v = (1 - n.v)^5
+    f_s     = F G D / (4 (n.v)(n.l))
+    F       = F0 + (1 - F0)(1 - h.v)^5,   F0 = 0.04 (1 - m) + c m
+    G       = G1(v) G2(l),  G1(v) = n.v / (2 [alpha + (1 - alpha) n.v])
+    D       = alpha^2 / (pi ((n.h)^2 (alpha^2 - 1) + 1)^2),   alpha = r^2
+
+The paper does not say how the lobes combine; we use the Disney/Mitsuba convention
+``f = (1 - m) f_d + f_s`` (metals have no diffuse lobe), which is also how the
+ground-truth scenes were rendered.
+
+Clamps (all documented here, see ../shared/GUIDE.md):
+    * ``alpha = max(r^2, ALPHA_MIN)`` with ``ALPHA_MIN = 1e-3`` (Mitsuba's bound): GGX D
+      is a delta at alpha = 0.
+    * ``(1 - h.v)`` and the Schlick weights' ``(1 - n.x)`` are clamped to [0, 1].
+    * ``G / (4 n.v n.l)`` is evaluated in its cancelled form
+      ``1 / (16 [alpha + (1-alpha) n.v][alpha + (1-alpha) n.l])``, which is algebraically
+      identical for n.l, n.v > 0 and needs no division by a cosine, so grazing angles
+      cannot blow up.
+    * Back-facing ``l`` or ``v`` (n.l <= 0 or n.v <= 0) give exactly zero (a mask, not a
+      clamp), so no gradient flows through the back side.
+    * ``h = (l + v) / max(|l + v|, 1e-8)``: when l = -v the half vector is zero, h.v = 0.
+      ``h.v`` itself is evaluated as ``|l + v| / 2`` (identical for unit l, v; symmetric and
+      well-conditioned as l -> -v, where ``dot(h, v)`` loses reciprocity in float32).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+ALPHA_MIN = 1e-3
+HALF_EPS = 1e-8
+
+
+def dot(a: Tensor, b: Tensor) -> Tensor:
+    """Row-wise dot product: ``[..., 3] x [..., 3] -> [..., 1]``."""
+    return (a * b).sum(dim=-1, keepdim=True)
+
+
+def half_vector(l: Tensor, v: Tensor) -> Tensor:
+    """``h = (l + v) / max(|l + v|, 1e-8)``; shapes ``[..., 3] -> [..., 3]``."""
+    s = l + v
+    return s / s.norm(dim=-1, keepdim=True).clamp_min(HALF_EPS)
+
+
+def ggx_alpha(roughness: Tensor) -> Tensor:
+    """``alpha = max(r^2, ALPHA_MIN)``; ``[..., 1] -> [..., 1]``."""
+    return (roughness * roughness).clamp_min(ALPHA_MIN)
+
+
+def schlick_weight(cos: Tensor) -> Tensor:
+    """``(1 - cos)^5`` with ``1 - cos`` clamped to [0, 1]; ``[..., 1] -> [..., 1]``."""
+    return (1.0 - cos).clamp(0.0, 1.0) ** 5
+
+
+def retro_reflection(albedo: Tensor, roughness: Tensor, f_l: Tensor, f_v: Tensor, hv: Tensor) -> Tensor:
+    """``f_retro = c/pi R (f_l + f_v + f_l f_v (R - 1))`` with ``R = 2 r (h.v)^2``.
+
+    Shapes: albedo ``[..., 3]``, others ``[..., 1]`` -> ``[..., 3]``.
+    """
+    R = 2.0 * roughness * hv * hv
+    return albedo / math.pi * R * (f_l + f_v + f_l * f_v * (R - 1.0))
+
+
+def disney_diffuse(albedo: Tensor, roughness: Tensor, nl: Tensor, nv: Tensor, hv: Tensor) -> Tensor:
+    """``f_d = c/pi (1 - f_l/2)(1 - f_v/2) + f_retro`` (front-facing cosines assumed).
+
+    Shapes: albedo ``[..., 3]``, roughness/nl/nv/hv ``[..., 1]`` -> ``[..., 3]``.
+    Worked value: c = 1, r = 0, n.l = n.v = 1 gives f_l = f_v = 0 and f_d = 1/pi.
+    """
+    f_l = schlick_weight(nl)
+    f_v = schlick_weight(nv)
+    base = albedo / math.pi * (1.0 - 0.5 * f_l) * (1.0 - 0.5 * f_v)
+    return base + retro_reflection(albedo, roughness, f_l, f_v, hv)
+
+
+def lambert_diffuse(albedo: Tensor) -> Tensor:
+    """``f_d = c / pi`` (the paper's BRDF ablation); ``[..., 3] -> [..., 3]``."""
+    return albedo / math.pi
+
+
+def fresnel_f0(albedo: Tensor, metallic: Tensor) -> Tensor:
+    """``F0 = 0.04 (1 - m) + c m``; ``[..., 3], [..., 1] -> [..., 3]``."""
+    return 0.04 * (1.0 - metallic) + albedo * metallic
+
+
+def fresnel_schlick(f0: Tensor, hv: Tensor) -> Tensor:
+    """``F = F0 + (1 - F0)(1 - h.v)^5``, ``(1 - h.v)`` clamped to [0, 1]."""
+    return f0 + (1.0 - f0) * schlick_weight(hv)
+
+
+def geometry_g1(cos: Tensor, alpha: Tensor) -> Tensor:
+    """Paper's ``G1(x) = n.x / (2 [alpha + (1 - alpha) n.x])`` for ``n.x >= 0``.
+
+    Worked value: alpha = 1 gives n.x / 2.
+    """
+    c = cos.clamp_min(0.0)
+    return c / (2.0 * (alpha + (1.0 - alpha) * c))
+
+
+def geometry_smith(nl: Tensor, nv: Tensor, alpha: Tensor) -> Tensor:
+    """``G(l, v) = G1(v) G2(l)`` (G2 has the same form as G1)."""
+    return geometry_g1(nv, alpha) * geometry_g1(nl, alpha)
+
+
+def specular_visibility(nl: Tensor, nv: Tensor, alpha: Tensor) -> Tensor:
+    """``G / (4 n.v n.l)`` in cancelled form: ``1 / (16 [a + (1-a) n.v][a + (1-a) n.l])``.
+
+    Bounded by ``1 / (16 alpha^2)`` for all non-negative cosines.
+    """
+    nl = nl.clamp_min(0.0)
+    nv = nv.clamp_min(0.0)
+    return 1.0 / (16.0 * (alpha + (1.0 - alpha) * nv) * (alpha + (1.0 - alpha) * nl))
+
+
+def ggx_distribution(nh: Tensor, alpha: Tensor) -> Tensor:
+    """``D(h) = alpha^2 / (pi ((n.h)^2 (alpha^2 - 1) + 1)^2)``; ``[..., 1] -> [..., 1]``.
+
+    Worked value: n.h = 1 gives ``1 / (pi alpha^2)``.
+    """
+    a2 = alpha * alpha
+    nh = nh.clamp(0.0, 1.0)
+    denom = nh * nh * (a2 - 1.0) + 1.0
+    return a2 / (math.pi * denom * denom)
+
+
+def ggx_specular(albedo: Tensor, roughness: Tensor, metallic: Tensor,
+                 nl: Tensor, nv: Tensor, nh: Tensor, hv: Tensor) -> Tensor:
+    """``f_s = F G D / (4 n.v n.l)`` (front-facing cosines assumed); -> ``[..., 3]``."""
+    alpha = ggx_alpha(roughness)
+    F = fresnel_schlick(fresnel_f0(albedo, metallic), hv)
+    return F * ggx_distribution(nh, alpha) * specular_visibility(nl, nv, alpha)
+
+
+def bsdf_eval(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor, metallic: Tensor,
+              *, lambertian: bool = False, specular: bool = True) -> Tensor:
+    """Full BSDF ``f = (1 - m) f_d + f_s``, zero when ``l`` or ``v`` is below the surface.
+
+    Args:
+        n, l, v: ``[..., 3]`` unit vectors.
+        albedo: ``[..., 3]`` in [0, 1]; roughness, metallic: ``[..., 1]`` in [0, 1].
+        lambertian: use ``c/pi`` instead of the Disney diffuse (ablation).
+        specular: include the GGX lobe (``False`` drops it for diffuse scenes).
+    Returns:
+        ``[..., 3]`` BSDF value (1/sr), finite and non-negative for all unit inputs.
+    """
+    nl = dot(n, l)
+    nv = dot(n, v)
+    front = ((nl > 0) & (nv > 0)).to(albedo.dtype)
+    nl_c = nl.clamp(0.0, 1.0)
+    nv_c = nv.clamp(0.0, 1.0)
+    h = half_vector(l, v)
+    # h.v = (1 + l.v) / |l + v| = |l + v| / 2 for unit l, v. The norm form is used because
+    # dot(h, v) is ill-conditioned when l ~ -v: float32 inputs are unit only to ~1e-7, so
+    # dot(h, v) - dot(h, l) = (|v|^2 - |l|^2) / |l + v| can reach O(0.1) with the wrong
+    # sign, breaking reciprocity (f(l, v) != f(v, l)) in F and f_retro. |l + v| / 2 is
+    # symmetric in (l, v) bit for bit and has bounded gradient.
+    hv = (0.5 * (l + v).norm(dim=-1, keepdim=True)).clamp(0.0, 1.0)
+    if lambertian:
+        f_d = lambert_diffuse(albedo)
+    else:
+        f_d = disney_diffuse(albedo, roughness, nl_c, nv_c, hv)
+    f = (1.0 - metallic) * f_d
+    if specular:
+        nh = dot(n, h).clamp(0.0, 1.0)
+        f = f + ggx_specular(albedo, roughness, metallic, nl_c, nv_c, nh, hv)
+    return f * front
+
+
+def shade(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor, metallic: Tensor,
+          intensity: Tensor, *, lambertian: bool = False, specular: bool = True) -> Tensor:
+    """Outgoing radiance from one light: ``L = f(l, v) * I * max(n.l, 0)``.
+
+    Shapes: as :func:`bsdf_eval`, ``intensity`` ``[..., 1]`` (or ``[..., 3]``) -> ``[..., 3]``.
+    """
+    f = bsdf_eval(n, l, v, albedo, roughness, metallic, lambertian=lambertian, specular=specular)
+    return f * intensity * dot(n, l).clamp_min(0.0)

@@ -1,0 +1,263 @@
+"""The ``nepf`` command line: fit, mesh, render, eval, export, make-scene, serve, worker, token.
+
+Service commands (serve, worker, token) are imported lazily from ``api``/``worker`` so the
+library never depends on FastAPI or Celery.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+
+def _device_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="where to run (default: auto)")
+
+
+def _progress_callbacks(total_hint: int):
+    from tqdm import tqdm
+
+    from nepf_core.callbacks import FitCallbacks
+    bar = tqdm(total=total_hint, unit="step", dynamic_ncols=True)
+
+    def on_progress(info: dict) -> None:
+        if info.get("total") and bar.total != info["total"]:
+            bar.total = info["total"]
+        if info.get("step") is not None and info["step"] > bar.n:
+            bar.update(info["step"] - bar.n)
+        eta = info.get("eta_s")
+        bar.set_postfix_str(f"{info.get('stage', '')} eta {eta:.0f}s" if eta is not None else info.get("stage", ""))
+
+    def on_metrics(rec: dict) -> None:
+        if rec.get("kind") == "test":
+            bar.write(f"[{rec['wall_s']:.0f}s] step {rec['step']}: test PSNR {rec.get('test_psnr', float('nan')):.2f} dB"
+                      + (f", albedo PSNR {rec['albedo_psnr']:.2f} dB" if rec.get("albedo_psnr") is not None else "")
+                      + (f", Chamfer {rec['chamfer']:.4f}" if rec.get("chamfer") is not None else ""))
+        elif rec.get("kind") == "sync":
+            bar.write(f"step {rec['step']}: sync PSNR L_r {rec['psnr_r']:.2f}  L_surf {rec['psnr_surf']:.2f}  "
+                      f"L_vol {rec['psnr_vol']:.2f} dB")
+
+    return FitCallbacks(on_progress=on_progress, on_metrics=on_metrics), bar
+
+
+def cmd_fit(a) -> int:
+    from nepf_core.jobs import run_job
+    cb, bar = _progress_callbacks(a.iters or 0)
+    try:
+        summary = run_job(a.data, a.out, preset=a.config, iters=a.iters, time_budget_s=a.time_budget,
+                          device=a.device, callbacks=cb, resume=a.resume, export=not a.no_export,
+                          texture_size=a.texture_size, max_faces=a.faces, test_dir=a.eval_test,
+                          gt_mesh=a.gt_mesh, gt_albedo=a.gt_albedo, log=bar.write)
+    finally:
+        bar.close()
+    print(json.dumps({k: summary[k] for k in ("status", "step", "total", "wall_s", "manifest")}, indent=2))
+    return 0
+
+
+def cmd_mesh(a) -> int:
+    import trimesh  # noqa: F401
+
+    from nepf_core.fit import load_model
+    from nepf_core.meshing import world_mesh
+    from nepf_core.model import ModelFieldQuery
+    model, cfg, state = load_model(a.run, a.device)
+    m = world_mesh(ModelFieldQuery(model), state["extra"]["world_from_norm"], a.resolution,
+                   device=next(model.parameters()).device)
+    out = Path(a.run) / "mesh.ply"
+    m.export(out)
+    print(f"wrote {out} ({len(m.vertices)} vertices, {len(m.faces)} faces, input world coordinates)")
+    return 0
+
+
+def _encode_channel(name: str, arr):
+    import numpy as np
+
+    from nepf_core.evaluate import srgb_np
+    if name in ("pbr", "radiance", "albedo"):
+        img = srgb_np(arr)
+    elif name in ("normal", "light_dir"):
+        img = (arr + 1.0) * 0.5
+    elif name == "light_intensity":
+        img = arr / max(float(arr.max()), 1e-6)
+    elif name == "depth":
+        img = arr / max(float(arr.max()), 1e-6)
+    else:
+        img = arr
+    img = np.clip(img, 0, 1)
+    if img.shape[-1] == 1:
+        img = img[..., 0]
+    return (img * 255 + 0.5).astype("uint8")
+
+
+def render_run(run, cameras, out, device="auto", stride: int = 1) -> dict:
+    """Render every camera of the dataset ``cameras`` with the run's model; see ``nepf render``."""
+    import numpy as np
+    from PIL import Image
+
+    from nepf_core.evaluate import CHANNELS, render_view
+    from nepf_core.fit import load_model
+    from nepf_core.rays import PixelSampler
+    from nepf_core.reframe import load_held_out
+    model, cfg, state = load_model(run, device)
+    W = np.asarray(state["extra"]["world_from_norm"])
+    scene = load_held_out(cameras, W)
+    dev = next(model.parameters()).device
+    sampler = PixelSampler(scene, dev)
+    rot = W[:3, :3] / float(np.cbrt(abs(np.linalg.det(W[:3, :3]))))
+    out = Path(out)
+    arrays = {c: [] for c in CHANNELS}
+    for k in range(scene.n_views):
+        r = render_view(model, sampler, k, cfg.render, stride=stride, rotation=rot)
+        for c in CHANNELS:
+            arrays[c].append(r[c])
+            if c == "depth":
+                continue
+            (out / c).mkdir(parents=True, exist_ok=True)
+            Image.fromarray(_encode_channel(c, r[c])).save(out / c / f"{k:03d}.png")
+    np.savez_compressed(out / "arrays.npz", **{c: np.stack(v) for c, v in arrays.items()})
+    return {"views": scene.n_views, "out": str(out), "scene": scene}
+
+
+def cmd_render(a) -> int:
+    info = render_run(a.run, a.cameras, a.out, a.device, a.stride)
+    print(f"rendered {info['views']} views into {info['out']}")
+    return 0
+
+
+def cmd_eval(a) -> int:
+    import numpy as np
+
+    from nepf_core.data.detect import load_scene
+    from nepf_core.evaluate import psnr, srgb_np, ssim
+    from nepf_core.fit import load_model
+    from nepf_core.model import ModelFieldQuery
+    out_dir = Path(a.out) if a.out else Path(a.run) / "eval"
+    info = render_run(a.run, a.test, out_dir / "renders", a.device)
+    scene = info["scene"]
+    arr = np.load(out_dir / "renders" / "arrays.npz")
+    pred, gt = srgb_np(arr["pbr"]), srgb_np(scene.images)
+    res = {"views": scene.n_views, "psnr_full": psnr(pred, gt),
+           "ssim_full": float(np.mean([ssim(pred[i], gt[i]) for i in range(len(gt))]))}
+    if scene.masks is not None:
+        m = scene.masks
+        res["psnr_masked"] = psnr(pred, gt, m)
+        res["ssim_masked"] = float(np.mean([ssim(pred[i] * m[i][..., None], gt[i] * m[i][..., None])
+                                            for i in range(len(gt))]))
+    if a.gt_mesh:
+        from nepf_core.meshing import chamfer_against_gt
+        model, cfg, state = load_model(a.run, a.device)
+        cw, cu = chamfer_against_gt(ModelFieldQuery(model), state["extra"]["world_from_norm"], a.gt_mesh,
+                                    resolution=a.resolution, device=next(model.parameters()).device)
+        res["chamfer_world"], res["chamfer_unit_sphere"] = cw, cu
+    res["conventions"] = ("PSNR/SSIM on sRGB values in [0,1]; masked = GT foreground pixels only (SSIM: "
+                          "both images multiplied by the mask); Chamfer = mean of both directions, 100k samples")
+    (out_dir).mkdir(parents=True, exist_ok=True)
+    (out_dir / "eval.json").write_text(json.dumps(res, indent=2))
+    print(json.dumps(res, indent=2))
+    return 0
+
+
+def cmd_export(a) -> int:
+    from nepf_core.jobs import export_run
+    p = export_run(a.run, device=a.device, texture_size=a.texture_size, max_faces=a.faces,
+                   mesh_resolution=a.resolution, previews=not a.no_previews)
+    print(f"wrote {p}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="nepf", description="NePF: single-stage neural inverse rendering")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    p = sub.add_parser("fit", help="train NePF on a dataset folder (DTU, Blender or instant-ngp)")
+    p.add_argument("data", help="dataset folder")
+    p.add_argument("--out", required=True, help="run folder to write")
+    p.add_argument("--config", default="fast", choices=["paper", "fast", "tiny"], help="preset (default: fast)")
+    p.add_argument("--iters", type=int, default=None, help="training steps (default: the preset's)")
+    p.add_argument("--time-budget", type=float, default=None, help="stop after this many seconds of training")
+    p.add_argument("--resume", action="store_true", help="continue from RUN/checkpoints/latest.pt")
+    p.add_argument("--eval-test", default=None, help="held-out dataset folder evaluated on a wall-clock schedule")
+    p.add_argument("--gt-mesh", default=None, help="ground-truth mesh (world coordinates) for Chamfer")
+    p.add_argument("--gt-albedo", default=None, help="npz with 'albedo' [N,H,W,3] of the held-out views")
+    p.add_argument("--no-export", action="store_true", help="skip the GLB/texture export at the end")
+    p.add_argument("--texture-size", type=int, default=None, choices=[256, 512, 1024, 2048],
+                   help="baked texture size (default: 1024; 256 for tiny)")
+    p.add_argument("--faces", type=int, default=None, help="face budget of the exported mesh (default 100k; 5k for tiny)")
+    _device_arg(p)
+    p.set_defaults(fn=cmd_fit)
+
+    p = sub.add_parser("mesh", help="write RUN/mesh.ply (marching cubes at SDF=0, input world coordinates)")
+    p.add_argument("run")
+    p.add_argument("--resolution", type=int, default=256)
+    _device_arg(p)
+    p.set_defaults(fn=cmd_mesh)
+
+    p = sub.add_parser("render", help="render every camera of another dataset folder, all channels")
+    p.add_argument("run")
+    p.add_argument("--cameras", required=True, help="dataset folder whose cameras to render")
+    p.add_argument("--out", required=True)
+    p.add_argument("--stride", type=int, default=1, help="render every N-th pixel")
+    _device_arg(p)
+    p.set_defaults(fn=cmd_render)
+
+    p = sub.add_parser("eval", help="PSNR/SSIM of the surface PBR on test views, Chamfer to a GT mesh")
+    p.add_argument("run")
+    p.add_argument("--test", required=True, help="held-out dataset folder")
+    p.add_argument("--gt-mesh", default=None)
+    p.add_argument("--resolution", type=int, default=256, help="marching-cubes resolution for Chamfer")
+    p.add_argument("--out", default=None, help="folder for renders and eval.json (default RUN/eval)")
+    _device_arg(p)
+    p.set_defaults(fn=cmd_eval)
+
+    p = sub.add_parser("export", help="GLB with baked PBR textures, light field, previews, manifest")
+    p.add_argument("run")
+    p.add_argument("--texture-size", type=int, default=1024, choices=[256, 512, 1024, 2048])
+    p.add_argument("--faces", type=int, default=100_000)
+    p.add_argument("--resolution", type=int, default=256, help="marching-cubes resolution")
+    p.add_argument("--no-previews", action="store_true")
+    _device_arg(p)
+    p.set_defaults(fn=cmd_export)
+
+    p = sub.add_parser("make-scene", help="write a synthetic ground-truth scene (DTU + Blender + gt/)")
+    p.add_argument("rest", nargs=argparse.REMAINDER)
+    p.set_defaults(fn=lambda a: _delegate("nepf_core.data.synth", "main", a.rest))
+
+    for name, mod, fn in (("serve", "api.commands", "serve_main"), ("worker", "worker.commands", "worker_main"),
+                          ("token", "api.commands", "token_main")):
+        p = sub.add_parser(name, help=f"service: {name} (see docs/SERVICE.md)", add_help=False)
+        p.add_argument("rest", nargs=argparse.REMAINDER)
+        p.set_defaults(fn=lambda a, mod=mod, fn=fn: _delegate(mod, fn, a.rest))
+    return ap
+
+
+def _delegate(module: str, fn: str, argv: list[str]) -> int:
+    import importlib
+    return int(getattr(importlib.import_module(module), fn)(list(argv)) or 0)
+
+
+SERVICE_COMMANDS = {"serve": ("api.commands", "serve_main"), "worker": ("worker.commands", "worker_main"),
+                    "token": ("api.commands", "token_main"), "make-scene": ("nepf_core.data.synth", "main")}
+
+
+def main(argv: list[str] | None = None) -> int:
+    from nepf_core.data.errors import DatasetError
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in SERVICE_COMMANDS:  # forwarded unchanged (options included)
+        mod, fn = SERVICE_COMMANDS[argv[0]]
+        return _delegate(mod, fn, argv[1:])
+    ap = build_parser()
+    a = ap.parse_args(argv)
+    try:
+        return int(a.fn(a) or 0)
+    except DatasetError as e:
+        print(f"nepf: invalid dataset: {e}", file=sys.stderr)
+        return 2
+    except (ValueError, RuntimeError, FileNotFoundError) as e:
+        print(f"nepf: error: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

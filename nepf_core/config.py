@@ -1,0 +1,149 @@
+"""Presets (``paper``, ``fast``, ``tiny``): one :class:`NePFConfig` composed of the config
+dataclasses that live beside what they configure."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from dataclasses import dataclass, field
+
+from nepf_core.fields.heads import HeadConfig
+from nepf_core.fields.sdf_mlp import MLPSDFConfig
+from nepf_core.losses import LossConfig
+from nepf_core.model import ModelConfig
+from nepf_core.render.renderer import RenderConfig
+
+
+@dataclass
+class TrainConfig:
+    """The optimisation loop."""
+
+    iters: int = 250_000
+    """Training steps (paper: 250k)."""
+    batch_rays: int = 512
+    """Rays per step (paper: 512)."""
+    lr: float = 3e-4
+    """Base learning rate (paper: 3e-4)."""
+    lr_grid: float = 1e-2
+    """Learning rate of grid-encoding parameters (fast preset)."""
+    warmup_steps: int = 5000
+    """Linear warm-up (NeuS: 5000)."""
+    lr_alpha: float = 0.05
+    """Cosine floor (NeuS: 0.05)."""
+    anneal_end: int = 50_000
+    """Steps of NeuS cosine annealing (0: none)."""
+    seed: int = 0
+    log_every: int = 10
+    """Write a metrics record every N steps."""
+    sync_every: int = 2500
+    """Sync-PSNR of L_r / L_surf / L_vol every N steps (paper: 2500)."""
+    sync_views: int = 2
+    """Training views used for sync-PSNR."""
+    sync_rays: int = 2048
+    """Pixels per sync evaluation."""
+    checkpoint_every: int = 5000
+    """Checkpoint period in steps."""
+    keep_checkpoints: int = 2
+    eval_every_s: float = 0.0
+    """Wall-clock period of held-out evaluation (0: only at the end, when a test set is given)."""
+    eval_stride: int = 1
+    """Render held-out views every N-th pixel (speed)."""
+    target_samples: int = 0
+    """Fast preset: adapt the ray batch to keep about this many shaded samples per step (0: fixed batch)."""
+    max_nonfinite_steps: int = 50
+    """Fail the run after this many skipped (non-finite) steps."""
+    grad_clip: float = 0.0
+    """Clip the gradient norm (0: off)."""
+    occupancy_every: int = 16
+    """Occupancy-grid refresh period in steps (when the model has one)."""
+    coarse_to_fine_frac: float = 0.3
+    """Fraction of training over which grid levels are activated coarse-to-fine."""
+    amp: bool = False
+    """bf16 autocast for the head networks on CUDA (never on CPU); the SDF and density stay fp32
+    (RenderConfig.amp_heads). No GradScaler: bf16 has fp32's exponent range."""
+    adaptive: bool = True
+    """Let fit() leave out what the scene does not need (see report.json)."""
+    plateau_patience: int = 3
+    """Early stop after this many held-out evaluations without 0.1 dB gain (only when the
+    iteration count was not fixed by the user)."""
+
+
+@dataclass
+class NePFConfig:
+    """Everything ``fit()`` needs besides the data."""
+
+    name: str = "paper"
+    model: ModelConfig = field(default_factory=ModelConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+    @staticmethod
+    def from_dict(d: dict) -> "NePFConfig":
+        def build(cls, data):
+            kwargs = {}
+            for f in dataclasses.fields(cls):
+                if f.name not in data:
+                    continue
+                v = data[f.name]
+                if dataclasses.is_dataclass(f.default_factory() if f.default_factory is not dataclasses.MISSING else None) and isinstance(v, dict):
+                    sub = f.default_factory()
+                    v = build(type(sub), v)
+                elif isinstance(v, list):
+                    v = tuple(v)
+                kwargs[f.name] = v
+            return cls(**kwargs)
+        return build(NePFConfig, d)
+
+
+def paper() -> NePFConfig:
+    """The supplementary's architecture: 8x256 SDF (softplus, see sdf_mlp) and photon (ReLU)
+    networks, 8x256 SIREN radiance and material networks, 512 rays, 64 + 64 samples."""
+    return NePFConfig(name="paper")
+
+
+def tiny() -> NePFConfig:
+    """Small networks for tests: seconds on a CPU, same code paths as ``paper``."""
+    head = HeadConfig(width=32, depth=2, activation="relu", n_freqs_v=2)
+    return NePFConfig(
+        name="tiny",
+        model=ModelConfig(sdf_mlp=MLPSDFConfig(width=64, depth=3, feature_dim=32, n_freqs=4, skips=(), weight_norm=False),
+                          radiance=head, photon=HeadConfig(width=32, depth=2), material=head),
+        render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1, hessian_fraction=0.05),
+        train=TrainConfig(iters=100, batch_rays=128, lr=5e-4, warmup_steps=20, anneal_end=100, log_every=5,
+                          sync_every=50, sync_rays=512, checkpoint_every=50, eval_stride=2),
+    )
+
+
+def fast() -> NePFConfig:
+    """Grid SDF + small heads + occupancy-guided samples + finite-difference normals."""
+    head = HeadConfig(width=64, depth=2, activation="relu", n_freqs_v=4)
+    return NePFConfig(
+        name="fast",
+        model=ModelConfig(sdf_kind="grid", radiance=head, photon=HeadConfig(width=64, depth=2, n_freqs_x=2,
+                                                                           use_feature=False),
+                          material=HeadConfig(width=64, depth=2), occupancy_resolution=64),
+        render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1, sampler="occupancy",
+                            normals="fd", alpha_mode="sample", head_weight_threshold=1e-4,
+                            eikonal_fraction=0.1),
+        loss=LossConfig(w_hessian=0.0),
+        train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,
+                          anneal_end=2000, log_every=20, sync_every=500, checkpoint_every=1000,
+                          eval_every_s=60.0, eval_stride=1, target_samples=0),
+    )
+
+
+PRESETS = {"paper": paper, "fast": fast, "tiny": tiny}
+
+
+def preset(name: str) -> NePFConfig:
+    """The preset called ``name`` (``paper|fast|tiny``); ValueError otherwise."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown config {name!r}: choose one of {', '.join(PRESETS)}")
+    return PRESETS[name]()

@@ -1,0 +1,89 @@
+"""Which layout is this folder, and load it.
+
+Rules, in order, for a folder ``D``:
+    1. ``D`` itself is a dataset: DTU (camera npz + ``image/``) before Blender
+       (``transforms_{train,test,val}.json``) before instant-ngp (``transforms.json``).
+    2. Otherwise look one level down (ignoring hidden folders and ``__MACOSX``), repeating
+       up to :data:`MAX_DEPTH` levels while exactly one sub-folder is not a dataset: zips
+       usually wrap the data in one folder. When several sub-folders are datasets (e.g. a
+       scene's ``input/`` with ``dtu/`` and ``blender/``), the same preference picks one
+       (DTU, then Blender, then instant-ngp; ties by name).
+    3. Else ``DatasetError(code="unknown_layout")``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from nepf_core.data.blender import is_blender, load_blender
+from nepf_core.data.dtu import is_dtu, load_dtu
+from nepf_core.data.errors import DatasetError
+from nepf_core.data.ingp import is_ingp, load_ingp
+from nepf_core.data.scene import Scene
+
+FORMATS = ("dtu", "blender", "ingp")
+MAX_DEPTH = 3
+_CHECKS = {"dtu": is_dtu, "blender": is_blender, "ingp": is_ingp}
+LOADERS = {"dtu": load_dtu, "blender": load_blender, "ingp": load_ingp}
+
+
+def format_of(folder: Path) -> str | None:
+    """The layout of ``folder`` itself (no descent), or None."""
+    for fmt in FORMATS:
+        if _CHECKS[fmt](folder):
+            return fmt
+    return None
+
+
+def _subdirs(folder: Path) -> list[Path]:
+    try:
+        names = sorted(os.listdir(folder))
+    except OSError:
+        return []
+    return [folder / n for n in names
+            if not n.startswith((".", "__MACOSX")) and (folder / n).is_dir()]
+
+
+def resolve_dataset(root: Path | str) -> tuple[str, Path]:
+    """``(format, dataset folder)`` for ``root`` following the module rules."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError("dataset folder not found", file=str(root), code="unknown_layout")
+    folder = root
+    for _ in range(MAX_DEPTH + 1):
+        fmt = format_of(folder)
+        if fmt is not None:
+            return fmt, folder
+        subs = _subdirs(folder)
+        found = [(FORMATS.index(f), s.name, f, s) for s in subs if (f := format_of(s)) is not None]
+        if found:
+            _, _, fmt, sub = min(found)
+            return fmt, sub
+        if len(subs) != 1:
+            break
+        folder = subs[0]
+    raise DatasetError(
+        "unknown dataset layout: expected DTU (cameras.npz or cameras_sphere.npz + image/), "
+        "NeRF-synthetic (transforms_train.json) or instant-ngp (transforms.json)",
+        file=os.path.relpath(folder, root) if folder != root else ".", code="unknown_layout")
+
+
+def detect_format(root: Path | str) -> str:
+    """``"dtu" | "blender" | "ingp"`` for a dataset folder (see module rules)."""
+    return resolve_dataset(root)[0]
+
+
+def load_scene(root: Path | str, split: str = "train", *, downscale: int = 1,
+               max_views: int | None = None) -> Scene:
+    """Detect the layout of ``root`` and load ``split`` as a :class:`Scene`.
+
+    Args:
+        root: dataset folder (or a folder wrapping one, see module rules).
+        split: ``"train"`` (default); ``"test"``/``"val"`` for Blender; ``"all"`` (same views
+            as ``"train"``) for DTU and instant-ngp, which have no splits.
+        downscale: integer box-filter factor (e.g. 4 for real DTU at 1600x1200).
+        max_views: keep at most this many evenly spaced views.
+    """
+    fmt, folder = resolve_dataset(root)
+    return LOADERS[fmt](folder, split, downscale=downscale, max_views=max_views)

@@ -1,0 +1,228 @@
+"""DTU / IDR / NeuS layout: ``cameras(_sphere).npz`` + ``image/`` (+ ``mask/``).
+
+Layout (IDR, NeuS):
+    ``cameras_sphere.npz`` (preferred) or ``cameras.npz`` with, per view ``i``:
+        * ``world_mat_i`` ``[4, 4]`` or ``[3, 4]``: ``K [R | t]``, world -> pixels (OpenCV,
+          pixel centres at integer coordinates);
+        * ``scale_mat_i`` ``[4, 4]`` (optional): normalised unit sphere -> world.
+    ``image/`` (or ``images/``): PNG/JPEG sorted by name; the i-th file is view ``i``.
+    ``mask/`` (or ``masks/``, optional): same count, any mode; converted to luma and
+    thresholded at 127, so 3-channel soft-edged DTU masks work.
+
+Cameras: ``P = world_mat_i @ scale_mat_i`` maps normalised points to pixels, and is
+decomposed into ``K`` and ``c2w`` (normalised frame) by :func:`decompose_projection`;
+``world_from_norm = scale_mat``. OpenCV's pixel centres sit at integer coordinates while
+``Scene`` puts them at +0.5, so ``K[0, 2]`` and ``K[1, 2]`` gain 0.5.
+
+Without ``scale_mat`` the normalisation is estimated from the cameras (visual hull of the
+masks when present) by :func:`nepf_core.data.normalize.normalization_from_cameras`,
+and ``Scene.extras["normalization"]`` says which rule was used.
+"""
+
+from __future__ import annotations
+
+import re
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import scipy.linalg
+
+from nepf_core.data.errors import DatasetError
+from nepf_core.data.images import ViewSpec, list_images, load_view_pixels, rel
+from nepf_core.data.normalize import (c2w_to_normalized, check_intrinsics,
+                                      normalization_from_cameras)
+from nepf_core.data.scene import Scene
+
+CAMERA_FILES = ("cameras_sphere.npz", "cameras.npz")
+IMAGE_DIRS = ("image", "images")
+MASK_DIRS = ("mask", "masks")
+
+
+def find_camera_file(root: Path) -> Path | None:
+    """The first of :data:`CAMERA_FILES` present in ``root``, or None."""
+    for name in CAMERA_FILES:
+        if (root / name).is_file():
+            return root / name
+    return None
+
+
+def find_dir(root: Path, names: tuple[str, ...]) -> Path | None:
+    """The first existing sub-folder of ``root`` among ``names``, or None."""
+    for name in names:
+        if (root / name).is_dir():
+            return root / name
+    return None
+
+
+def is_dtu(root: Path) -> bool:
+    """True when ``root`` has a camera npz and an image folder."""
+    root = Path(root)
+    return find_camera_file(root) is not None and find_dir(root, IMAGE_DIRS) is not None
+
+
+def decompose_projection(P: np.ndarray, *, label: str | None = None, view: int | None = None
+                         ) -> tuple[np.ndarray, np.ndarray]:
+    """Split a ``[3, 4]`` projection ``P ~ K [R | t]`` into ``K [3, 3]`` and ``c2w [4, 4]``.
+
+    Steps: flip the sign of ``P`` if ``det P[:, :3] < 0`` (same projective camera, points in
+    front get positive depth); RQ-decompose ``M = P[:, :3] = K R``; make ``diag K`` positive
+    with ``D = diag(sign(diag K))`` (``K <- K D``, ``R <- D R``); scale ``K[2, 2] = 1``.
+    The camera centre is ``C = -M^{-1} p_4`` and ``c2w = [[R^T, C], [0, 1]]``.
+    ``K`` is returned in the OpenCV convention (pixel centres at integers).
+
+    Raises ``nonfinite_camera`` or ``singular_camera`` (``sigma_min / sigma_max < 1e-12``).
+    """
+    P = np.asarray(P, dtype=np.float64)
+    if not np.isfinite(P).all():
+        raise DatasetError("projection matrix has NaN or infinite entries", file=label, view=view,
+                           code="nonfinite_camera")
+    M = P[:, :3]
+    sv = np.linalg.svd(M, compute_uv=False)
+    if sv[0] == 0 or sv[-1] / sv[0] < 1e-12:
+        raise DatasetError("projection matrix is singular (rank < 3)", file=label, view=view,
+                           code="singular_camera")
+    if np.linalg.det(M) < 0:
+        P = -P
+        M = -M
+    K, R = scipy.linalg.rq(M)
+    D = np.diag(np.sign(np.diag(K)))
+    K = K @ D
+    R = D @ R
+    K = K / K[2, 2]
+    C = -np.linalg.solve(M, P[:, 3])
+    c2w = np.eye(4)
+    c2w[:3, :3] = R.T
+    c2w[:3, 3] = C
+    return K, c2w
+
+
+def read_camera_npz(path: Path, root: Path) -> dict[str, np.ndarray]:
+    """Load the npz as a dict (``unreadable_cameras`` on failure)."""
+    label = rel(path, root)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: np.asarray(z[k]) for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
+        raise DatasetError(f"cannot read camera file: {e}", file=label, code="unreadable_cameras") from None
+
+
+def _as_4x4(m: np.ndarray, key: str, label: str, view: int) -> np.ndarray:
+    m = np.asarray(m, dtype=np.float64)
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0, 0, 0, 1]])
+    if m.shape != (4, 4):
+        raise DatasetError(f"{key} has shape {m.shape}, expected 4x4 or 3x4", file=label, view=view,
+                           code="invalid_camera")
+    if not np.isfinite(m).all():
+        raise DatasetError(f"{key} has NaN or infinite entries", file=label, view=view,
+                           code="nonfinite_camera")
+    return m
+
+
+def parse_dtu(root: Path | str) -> tuple[list[ViewSpec], np.ndarray | None, dict]:
+    """Read the cameras and file lists (no pixels).
+
+    Returns ``(specs, world_from_norm or None, info)``: ``specs[i].c2w`` is in the normalised
+    frame when ``scale_mat`` exists (``world_from_norm = scale_mat_0``), else in world.
+    Raises ``DatasetError`` for missing files, count mismatches and bad matrices.
+    """
+    root = Path(root)
+    cam_path = find_camera_file(root)
+    if cam_path is None:
+        raise DatasetError(f"no {' or '.join(CAMERA_FILES)} in the DTU folder", file=".",
+                           code="unknown_layout")
+    img_dir = find_dir(root, IMAGE_DIRS)
+    if img_dir is None:
+        raise DatasetError("no image/ folder next to the camera file", file=".", code="unknown_layout")
+    cam_label = rel(cam_path, root)
+    cams = read_camera_npz(cam_path, root)
+    idx = sorted(int(m.group(1)) for k in cams if (m := re.fullmatch(r"world_mat_(\d+)", k)))
+    images = list_images(img_dir, root)
+    if not images:
+        raise DatasetError("the image folder holds no PNG/JPEG image", file=rel(img_dir, root),
+                           code="no_views")
+    if idx != list(range(len(idx))):
+        missing = sorted(set(range(max(idx, default=-1) + 1)) - set(idx))
+        raise DatasetError(f"world_mat keys are not numbered 0..N-1 (missing {missing[:5]})",
+                           file=cam_label, view=missing[0] if missing else None, code="count_mismatch")
+    if len(idx) != len(images):
+        raise DatasetError(f"{len(images)} images in {rel(img_dir, root)}/ but {len(idx)} cameras "
+                           f"(world_mat_i) in {cam_label}", file=cam_label,
+                           view=min(len(idx), len(images)), code="count_mismatch")
+    mask_dir = find_dir(root, MASK_DIRS)
+    masks = None
+    if mask_dir is not None:
+        masks = list_images(mask_dir, root)
+        if len(masks) != len(images):
+            raise DatasetError(f"{len(masks)} masks in {rel(mask_dir, root)}/ but {len(images)} images",
+                               file=rel(mask_dir, root), view=min(len(masks), len(images)),
+                               code="count_mismatch")
+    has_scale = [f"scale_mat_{i}" in cams for i in idx]
+    if any(has_scale) and not all(has_scale):
+        v = has_scale.index(False)
+        raise DatasetError(f"scale_mat_{v} is missing while other views have one", file=cam_label,
+                           view=v, code="count_mismatch")
+    scale = None
+    if all(has_scale):
+        scale = _as_4x4(cams["scale_mat_0"], "scale_mat_0", cam_label, 0)
+        for i in idx:
+            si = _as_4x4(cams[f"scale_mat_{i}"], f"scale_mat_{i}", cam_label, i)
+            if not np.allclose(si, scale, rtol=1e-6, atol=1e-9 * max(1.0, np.abs(scale).max())):
+                raise DatasetError(f"scale_mat_{i} differs from scale_mat_0; the views would not share "
+                                   "one normalised frame", file=cam_label, view=i, code="invalid_camera")
+        if abs(np.linalg.det(scale[:3, :3])) < 1e-12:
+            raise DatasetError("scale_mat is singular", file=cam_label, view=0, code="singular_camera")
+    specs = []
+    for i in idx:
+        W = _as_4x4(cams[f"world_mat_{i}"], f"world_mat_{i}", cam_label, i)
+        P = (W @ scale if scale is not None else W)[:3, :4]
+        K, c2w = decompose_projection(P, label=cam_label, view=i)
+        K = K.copy()
+        K[0, 2] += 0.5
+        K[1, 2] += 0.5
+        check_intrinsics(K, label=cam_label, view=i)
+        specs.append(ViewSpec(
+            image=images[i], label=rel(images[i], root), K=K, c2w=c2w,
+            mask=None if masks is None else masks[i],
+            mask_label=None if masks is None else rel(masks[i], root)))
+    info = {"camera_file": cam_label, "has_scale_mat": scale is not None}
+    return specs, scale, info
+
+
+def pick_views(n: int, max_views: int | None) -> np.ndarray:
+    """Evenly spaced view indices: all ``n`` or ``round(linspace(0, n-1, max_views))``."""
+    if max_views is None or max_views >= n:
+        return np.arange(n)
+    if max_views < 1:
+        raise DatasetError(f"max_views must be >= 1, got {max_views}", code="bad_argument")
+    return np.unique(np.round(np.linspace(0, n - 1, max_views)).astype(np.int64))
+
+
+def load_dtu(root: Path | str, split: str = "train", *, downscale: int = 1,
+             max_views: int | None = None) -> Scene:
+    """Load a DTU/IDR/NeuS folder as a :class:`Scene` (see module docstring).
+
+    DTU folders have no splits: ``split`` must be ``"train"`` or ``"all"`` and every view
+    is returned. ``max_views`` keeps evenly spaced views (:func:`pick_views`).
+    """
+    root = Path(root)
+    if split not in ("train", "all"):
+        raise DatasetError(f"DTU folders have no '{split}' split (all views are training views)",
+                           file=".", code="missing_split")
+    specs, scale, info = parse_dtu(root)
+    specs = [specs[i] for i in pick_views(len(specs), max_views)]
+    images, masks, Ks = load_view_pixels(specs, downscale=downscale)
+    c2w = np.stack([s.c2w for s in specs])
+    if scale is not None:
+        wfn = scale
+        info["normalization"] = "scale_mat"
+    else:
+        norm = normalization_from_cameras(Ks, c2w, (images.shape[2], images.shape[1]), masks)
+        wfn = norm.world_from_norm
+        c2w = c2w_to_normalized(c2w, wfn)
+        info["normalization"] = norm.method
+    return Scene(images=images, masks=masks, intrinsics=Ks.astype(np.float32),
+                 c2w=c2w.astype(np.float32), world_from_norm=wfn.astype(np.float64),
+                 names=[s.label for s in specs], root=str(root), source_format="dtu",
+                 split="train" if split == "train" else "all", extras=info)

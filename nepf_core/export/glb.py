@@ -1,0 +1,136 @@
+"""Binary glTF 2.0 (GLB) writer for the baked asset (pygltflib, one mesh, one PBR material).
+
+Frame decision (documented, deliberate): the vertex data is written in the **input's world
+coordinates unchanged**, with no root-node rotation. glTF defines +Y as up; our inputs have
+their own convention (the synthetic and Blender scenes are Z-up, DTU is roughly -Y-up), and
+``lights.json`` / ``light_field.json`` are in the same world frame. Writing the world frame
+as-is keeps asset, lights and cameras consistent; a viewer that wants glTF's Y-up for a
+Z-up input rotates the whole scene by -90 degrees about X (the same rotation for the
+lights). The frame is recorded in ``asset.extras.nepf`` (``frame``, ``up`` = the world up
+axis hint given to ``export_asset``, ``world_from_norm``).
+
+Contents:
+* one node -> one mesh -> one triangle primitive with ``POSITION`` (float32, min/max),
+  ``NORMAL`` (unit float32), ``TEXCOORD_0`` (float32, glTF top-left origin), ``uint32``
+  indices;
+* one material, ``pbrMetallicRoughness`` with ``baseColorTexture`` (sRGB PNG),
+  ``metallicRoughnessTexture`` (linear ORM PNG: G = roughness, B = metallic) and
+  ``occlusionTexture`` pointing at the same ORM image (R = occlusion = 1);
+  ``baseColorFactor = 1``, ``metallicFactor = roughnessFactor = 1`` so the textures hold the
+  values directly;
+* PNG bytes embedded in the binary chunk (identical to ``textures/*.png``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pygltflib as g
+
+__all__ = ["write_glb"]
+
+_ARRAY_BUFFER = 34962
+_ELEMENT_ARRAY_BUFFER = 34963
+_FLOAT = 5126
+_UINT32 = 5125
+_LINEAR = 9729
+_LINEAR_MIPMAP_LINEAR = 9987
+_REPEAT = 10497
+
+
+def write_glb(
+    path: str | Path,
+    vertices: np.ndarray,
+    normals: np.ndarray,
+    uv: np.ndarray,
+    faces: np.ndarray,
+    base_color_png: bytes,
+    orm_png: bytes,
+    name: str = "nepf_asset",
+    extras: dict | None = None,
+) -> Path:
+    """Write a GLB.
+
+    Args:
+        vertices: ``[V,3]`` world coordinates. normals: ``[V,3]`` (renormalised here).
+        uv: ``[V,2]`` in [0,1], top-left origin. faces: ``[F,3]`` vertex indices.
+        base_color_png, orm_png: encoded PNG files.
+        extras: JSON-able dict stored under ``asset.extras.nepf``.
+    Returns: the path written.
+    """
+    v = np.ascontiguousarray(vertices, dtype=np.float32)
+    n = np.asarray(normals, dtype=np.float64)
+    n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    bad = ~np.isfinite(n).all(axis=-1) | (np.linalg.norm(n, axis=-1) < 0.5)
+    n[bad] = (0.0, 0.0, 1.0)
+    n = np.ascontiguousarray(n, dtype=np.float32)
+    t = np.ascontiguousarray(np.clip(uv, 0.0, 1.0), dtype=np.float32)
+    idx = np.ascontiguousarray(faces, dtype=np.uint32).reshape(-1)
+    if len(v) == 0 or len(idx) == 0:
+        raise ValueError("write_glb: empty mesh")
+
+    blob = bytearray()
+    views: list[g.BufferView] = []
+
+    def add_view(data: bytes, target: int | None) -> int:
+        while len(blob) % 4:
+            blob.append(0)
+        views.append(g.BufferView(buffer=0, byteOffset=len(blob), byteLength=len(data), target=target))
+        blob.extend(data)
+        return len(views) - 1
+
+    accessors = [
+        g.Accessor(bufferView=add_view(v.tobytes(), _ARRAY_BUFFER), componentType=_FLOAT,
+                   count=len(v), type="VEC3", min=v.min(0).tolist(), max=v.max(0).tolist()),
+        g.Accessor(bufferView=add_view(n.tobytes(), _ARRAY_BUFFER), componentType=_FLOAT,
+                   count=len(n), type="VEC3"),
+        g.Accessor(bufferView=add_view(t.tobytes(), _ARRAY_BUFFER), componentType=_FLOAT,
+                   count=len(t), type="VEC2"),
+        g.Accessor(bufferView=add_view(idx.tobytes(), _ELEMENT_ARRAY_BUFFER), componentType=_UINT32,
+                   count=len(idx), type="SCALAR"),
+    ]
+    img_base = add_view(bytes(base_color_png), None)
+    img_orm = add_view(bytes(orm_png), None)
+    while len(blob) % 4:
+        blob.append(0)
+
+    material = g.Material(
+        name="baked",
+        pbrMetallicRoughness=g.PbrMetallicRoughness(
+            baseColorFactor=[1.0, 1.0, 1.0, 1.0],
+            baseColorTexture=g.TextureInfo(index=0, texCoord=0),
+            metallicFactor=1.0,
+            roughnessFactor=1.0,
+            metallicRoughnessTexture=g.TextureInfo(index=1, texCoord=0),
+        ),
+        occlusionTexture=g.OcclusionTextureInfo(index=1, texCoord=0, strength=1.0),
+        doubleSided=False,
+    )
+    gltf = g.GLTF2(
+        asset=g.Asset(version="2.0", generator="nepf export",
+                      extras={"nepf": {"frame": "input world coordinates (not rotated to glTF +Y up)",
+                                       **(extras or {})}}),
+        scene=0,
+        scenes=[g.Scene(nodes=[0])],
+        nodes=[g.Node(mesh=0, name=name)],
+        meshes=[g.Mesh(name=name, primitives=[g.Primitive(
+            attributes=g.Attributes(POSITION=0, NORMAL=1, TEXCOORD_0=2), indices=3,
+            material=0, mode=4)])],
+        accessors=accessors,
+        bufferViews=views,
+        buffers=[g.Buffer(byteLength=len(blob))],
+        images=[g.Image(bufferView=img_base, mimeType="image/png", name="base_color"),
+                g.Image(bufferView=img_orm, mimeType="image/png", name="orm")],
+        samplers=[g.Sampler(magFilter=_LINEAR, minFilter=_LINEAR_MIPMAP_LINEAR, wrapS=_REPEAT,
+                            wrapT=_REPEAT)],
+        textures=[g.Texture(sampler=0, source=0), g.Texture(sampler=0, source=1)],
+        materials=[material],
+    )
+    gltf.set_binary_blob(bytes(blob))
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    gltf.save_binary(str(tmp))
+    tmp.replace(path)
+    return path

@@ -1,0 +1,1 @@
+"""Neural fields: SDF (MLP or grid), outgoing radiance, photon (light), material, background."""

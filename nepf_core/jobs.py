@@ -1,0 +1,113 @@
+"""One training job end to end: load -> fit -> export. Used by the worker and ``nepf fit``.
+
+Contract (stable; the worker codes against it):
+
+    run_job(data_dir, run_dir, *, preset="fast", iters=None, time_budget_s=None,
+            device="auto", callbacks=None, resume=True, ...) -> dict
+
+* Raises ``nepf_core.data.DatasetError`` for bad input (before any training).
+* Resumes from ``run_dir/checkpoints/latest.pt`` when ``resume`` and it exists.
+* Returns a summary ``{"status": "succeeded"|"cancelled"|"stopped_early", "step", "total",
+  "wall_s", "manifest": path of run_dir/manifest.json, "report": {...}}``.
+* When ``callbacks.should_stop()`` turns True, training stops at the next step, a final
+  checkpoint and the export of the partial model are still written, and the status is
+  ``"cancelled"``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from nepf_core.callbacks import FitCallbacks
+from nepf_core.config import NePFConfig, preset as make_preset
+
+
+def build_config(preset: str = "fast", iters: int | None = None, overrides: dict | None = None) -> NePFConfig:
+    """A preset with the user's iteration count and optional ``{"section.field": value}`` overrides."""
+    cfg = make_preset(preset)
+    if iters is not None:
+        if int(iters) < 1:
+            raise ValueError(f"iters must be >= 1 (got {iters})")
+        cfg.train.iters = int(iters)
+    for key, value in (overrides or {}).items():
+        section, _, name = key.partition(".")
+        obj = getattr(cfg, section, None)
+        if obj is None or not hasattr(obj, name):
+            raise ValueError(f"unknown config field {key!r}")
+        setattr(obj, name, type(getattr(obj, name))(value))
+    return cfg
+
+
+EXPORT_DEFAULTS = {
+    # tiny: seconds, for tests and demos; fast/paper: the issue's defaults (100k faces, 1024^2)
+    "tiny": {"texture_size": 256, "max_faces": 5_000, "mesh_resolution": 64},
+    "fast": {"texture_size": 1024, "max_faces": 100_000, "mesh_resolution": 256},
+    "paper": {"texture_size": 1024, "max_faces": 100_000, "mesh_resolution": 256},
+}
+
+
+def run_job(data_dir, run_dir, *, preset: str = "fast", iters=None, time_budget_s=None,
+            device: str = "auto", callbacks: FitCallbacks | None = None, resume: bool = True,
+            export: bool = True, texture_size: int | None = None, max_faces: int | None = None,
+            mesh_resolution: int | None = None, test_dir=None, gt_mesh=None, gt_albedo=None,
+            overrides: dict | None = None, log=print) -> dict:
+    """Load ``data_dir``, fit, and export into ``run_dir``; see the module docstring."""
+    from nepf_core.data.detect import load_scene
+    from nepf_core.fit import EvalTargets, fit
+
+    cb = callbacks or FitCallbacks()
+    run = Path(run_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    cb.progress({"step": 0, "total": 0, "fraction": 0.0, "stage": "loading", "eta_s": None, "wall_s": 0.0})
+    scene = load_scene(data_dir, split="train")
+    cfg = build_config(preset, iters, overrides)
+    targets = None
+    if test_dir is not None:
+        import numpy as np
+        from nepf_core.reframe import load_held_out
+        test_scene = load_held_out(test_dir, scene.world_from_norm)
+        alb = None
+        if gt_albedo is not None:
+            alb = np.load(gt_albedo)["albedo"].astype("float32") if str(gt_albedo).endswith(".npz") else gt_albedo
+        targets = EvalTargets(test_scene=test_scene, gt_mesh_path=gt_mesh, gt_albedo=alb)
+    res = fit(scene, run, cfg, device=device, callbacks=cb, resume=resume, time_budget_s=time_budget_s,
+              targets=targets, iters_fixed=iters is not None, log=log)
+    manifest_path = None
+    d = EXPORT_DEFAULTS.get(preset, EXPORT_DEFAULTS["fast"])
+    texture_size = texture_size or d["texture_size"]
+    max_faces = max_faces or d["max_faces"]
+    mesh_resolution = mesh_resolution or d["mesh_resolution"]
+    if export:
+        cb.progress({"step": res.step, "total": res.total, "fraction": 1.0 if res.status != "cancelled" else res.step / max(res.total, 1),
+                     "stage": "exporting", "eta_s": None, "wall_s": res.wall_s})
+        manifest_path = export_run(run, device=device, texture_size=texture_size, max_faces=max_faces,
+                                   mesh_resolution=mesh_resolution, log=log)
+    summary = {"status": res.status, "step": res.step, "total": res.total, "wall_s": res.wall_s,
+               "manifest": None if manifest_path is None else str(manifest_path), "report": res.report,
+               "last_test": res.last_test, "nonfinite_steps": res.nonfinite_steps}
+    (run / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    if manifest_path is not None:
+        from nepf_core.export.manifest import write_manifest
+        write_manifest(run)
+    return summary
+
+
+def export_run(run_dir, *, device: str = "auto", texture_size: int = 1024, max_faces: int = 100_000,
+               mesh_resolution: int = 256, previews: bool = True, log=print) -> Path:
+    """Export the latest checkpoint of ``run_dir`` (GLB, textures, light field, previews, manifest)."""
+    import torch
+
+    from nepf_core.export import export_asset
+    from nepf_core.fit import load_model
+    from nepf_core.model import ModelFieldQuery
+
+    model, cfg, state = load_model(run_dir, device)
+    world_from_norm = state["extra"].get("world_from_norm")
+    if world_from_norm is None:
+        raise RuntimeError(f"{run_dir}: checkpoint has no world_from_norm")
+    import numpy as np
+    dev = next(model.parameters()).device
+    export_asset(ModelFieldQuery(model), np.asarray(world_from_norm), run_dir, texture_size=texture_size,
+                 max_faces=max_faces, mesh_resolution=mesh_resolution, device=dev, log=log, previews=previews)
+    return Path(run_dir) / "manifest.json"

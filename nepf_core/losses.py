@@ -1,0 +1,121 @@
+"""NePF losses. Each term is a pure function; :class:`LossConfig` weights and switches them.
+
+Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.md``):
+
+    L_r     = mean | srgb(L_r) - srgb(L_gt) |
+    L_surf  = lambda1 * mean (1 - w_max) | srgb(L_surf) - srgb(sg(L_r)) |     (paper; sg = stop-grad)
+              (ablation: supervise by L_gt instead of L_r)
+    L_vol   = lambda2 * mean | srgb(L_vol) - srgb(L_gt) |
+    L_eik   = w_eik * mean | |grad f| - 1 |
+    L_hess  = w_hess * mean sum_i |H_ii f|
+    L_light = w_light * (l3 |var x - var I| + l4 |var n - var l| + l5 |var x - var l|)
+    L_mask  = w_mask * BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)
+
+With masks, colour terms average over foreground rays only (NeuS); ``L_surf`` and
+``L_light`` always use only rays that hit a surface (mask, or ``sum w > 0.5`` without).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from nepf_core.rays import RayBatch
+
+
+@dataclass
+class LossConfig:
+    """Loss weights (0 switches a term off). Defaults are the paper's where it gives them."""
+
+    w_r: float = 1.0
+    """Outgoing-radiance colour loss."""
+    lambda1_surf: float = 3e-4
+    """Paper lambda1 (L_surf)."""
+    lambda2_vol: float = 1e-4
+    """Paper lambda2 (L_vol)."""
+    surf_target: str = "radiance"
+    """``radiance`` (paper: L_surf supervised by L_r) or ``gt`` (ablation)."""
+    surf_one_minus_wmax: bool = True
+    """Multiply L_surf by (1 - w_max) (paper's "surface approaching")."""
+    w_eikonal: float = 0.1
+    """Eikonal weight (NeuS's value; the paper gives none)."""
+    w_hessian: float = 5e-4
+    """Hessian weight (the paper gives none)."""
+    w_light: float = 1e-4
+    """Overall light-variance weight (paper: 1e-4)."""
+    lambda3: float = 1.0
+    lambda4: float = 1.0
+    lambda5: float = 0.1
+    w_mask: float = 0.1
+    """Mask BCE weight (NeuS's value); only applied when the scene has masks."""
+    color_space: str = "srgb"
+    """``srgb`` (display space) or ``linear``."""
+
+
+def srgb_encode(x: Tensor) -> Tensor:
+    """sRGB OETF on linear values clamped to [0, 1]; bounded slope (12.92) near 0."""
+    x = x.clamp(0.0, 1.0)
+    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def l1_masked(pred: Tensor, target: Tensor, weight: Tensor | None) -> Tensor:
+    """``sum_r w_r |pred_r - target_r|_1 / (3 sum_r w_r)`` (plain mean when weight is None)."""
+    err = (pred - target).abs()
+    if weight is None:
+        return err.mean()
+    return (err * weight[:, None]).sum() / (3.0 * weight.sum().clamp_min(1.0))
+
+
+def batch_variance(x: Tensor) -> Tensor:
+    """Total variance over a batch, ``sum_c Var(x[:, c])``: ``[N, C] -> []`` (0 for N < 2)."""
+    if x.shape[0] < 2:
+        return x.new_zeros(())
+    return x.var(dim=0, unbiased=False).sum()
+
+
+def light_variance_loss(x: Tensor, n: Tensor, l: Tensor, I: Tensor, l3: float, l4: float, l5: float) -> Tensor:
+    """``l3 |var x - var I| + l4 |var n - var l| + l5 |var x - var l|`` over surface points."""
+    vx, vn, vl, vI = batch_variance(x), batch_variance(n), batch_variance(l), batch_variance(I[:, None])
+    return l3 * (vx - vI).abs() + l4 * (vn - vl).abs() + l5 * (vx - vl).abs()
+
+
+def mask_bce(weight_sum: Tensor, mask: Tensor) -> Tensor:
+    """``BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)``, finite for any weight sum."""
+    return F.binary_cross_entropy(weight_sum.clip(1e-3, 1.0 - 1e-3), mask)
+
+
+def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool) -> dict[str, Tensor]:
+    """All enabled loss terms plus their weighted sum under ``"loss"``."""
+    enc = srgb_encode if cfg.color_space == "srgb" else (lambda t: t.clamp(0.0, 1.0))
+    gt = enc(rays.rgb)
+    fg = rays.mask if (use_mask and rays.mask is not None) else None
+    L = {}
+    zero = out.rgb_r.new_zeros(())
+    r_enc = enc(out.rgb_r)
+    L["loss_r"] = l1_masked(r_enc, gt, fg) if cfg.w_r > 0 else zero
+    surf_rays = fg if fg is not None else (out.weight_sum.detach() > 0.5).float()
+    if cfg.lambda1_surf > 0:
+        target = r_enc.detach() if cfg.surf_target == "radiance" else gt
+        wt = surf_rays * ((1.0 - out.w_max.detach()) if cfg.surf_one_minus_wmax else 1.0)
+        err = (enc(out.rgb_surf) - target).abs().mean(-1)
+        L["loss_surf"] = (err * wt).sum() / surf_rays.sum().clamp_min(1.0)
+    else:
+        L["loss_surf"] = zero
+    L["loss_vol"] = l1_masked(enc(out.rgb_vol), gt, fg) if cfg.lambda2_vol > 0 else zero
+    L["loss_eik"] = out.eikonal.mean() if (cfg.w_eikonal > 0 and out.eikonal.numel()) else zero
+    L["loss_hess"] = out.hessian.mean() if (cfg.w_hessian > 0 and out.hessian.numel()) else zero
+    if cfg.w_light > 0:
+        keep = surf_rays > 0.5
+        s = out.surf
+        L["loss_light"] = light_variance_loss(s["x"][keep], s["normal"][keep], s["light_dir"][keep],
+                                              s["intensity"][keep], cfg.lambda3, cfg.lambda4, cfg.lambda5)
+    else:
+        L["loss_light"] = zero
+    L["loss_mask"] = mask_bce(out.weight_sum, rays.mask) if (use_mask and rays.mask is not None and cfg.w_mask > 0) else zero
+    L["loss"] = (cfg.w_r * L["loss_r"] + cfg.lambda1_surf * L["loss_surf"] + cfg.lambda2_vol * L["loss_vol"]
+                 + cfg.w_eikonal * L["loss_eik"] + cfg.w_hessian * L["loss_hess"]
+                 + cfg.w_light * L["loss_light"] + cfg.w_mask * L["loss_mask"])
+    return L

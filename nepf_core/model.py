@@ -1,0 +1,112 @@
+"""The NePF model: one SDF density field shared by radiance, photon and material networks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+
+from nepf_core.fields.heads import BackgroundField, Deviation, HeadConfig, MaterialField, PhotonField, RadianceField
+from nepf_core.fields.sdf_mlp import MLPSDF, MLPSDFConfig
+
+
+@dataclass
+class ModelConfig:
+    """Network architecture (defaults: the paper's supplementary)."""
+
+    sdf_kind: str = "mlp"
+    """``mlp`` (paper) or ``grid`` (fast)."""
+    sdf_mlp: MLPSDFConfig = field(default_factory=MLPSDFConfig)
+    """Used when ``sdf_kind == "mlp"``."""
+    sdf_grid: dict = field(default_factory=dict)
+    """Keyword arguments of :class:`nepf_core.fields.sdf_grid.GridSDFConfig` (``sdf_kind == "grid"``)."""
+    radiance: HeadConfig = field(default_factory=lambda: HeadConfig(activation="siren", n_freqs_v=4))
+    """Outgoing radiance network (paper: 8x256 SIREN)."""
+    photon: HeadConfig = field(default_factory=lambda: HeadConfig(activation="relu"))
+    """Photon network (paper: 8x256 ReLU)."""
+    material: HeadConfig = field(default_factory=lambda: HeadConfig(activation="siren"))
+    """Material network (paper: 8x256 SIREN)."""
+    init_variance: float = 0.3
+    """NeuS deviation init: inv_s = exp(10 * 0.3) = 20."""
+    background: bool = False
+    """Background radiance B(d); switched on by fit() for scenes without masks."""
+    occupancy_resolution: int = 0
+    """Occupancy grid resolution (0: none)."""
+
+
+def build_sdf(cfg: ModelConfig) -> nn.Module:
+    if cfg.sdf_kind == "mlp":
+        return MLPSDF(cfg.sdf_mlp)
+    if cfg.sdf_kind == "grid":
+        from nepf_core.fields.sdf_grid import GridSDF, GridSDFConfig
+        return GridSDF(GridSDFConfig(**cfg.sdf_grid))
+    raise ValueError(f"unknown sdf_kind {cfg.sdf_kind!r} (mlp|grid)")
+
+
+class NePFModel(nn.Module):
+    """All fields of one NePF scene (normalised frame)."""
+
+    def __init__(self, cfg: ModelConfig) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.sdf = build_sdf(cfg)
+        F = self.sdf.feature_dim
+        self.radiance = RadianceField(cfg.radiance, F)
+        self.photon = PhotonField(cfg.photon, F)
+        self.material = MaterialField(cfg.material, F)
+        self.deviation = Deviation(cfg.init_variance)
+        self.background = BackgroundField() if cfg.background else None
+        self.occupancy = None
+        if cfg.occupancy_resolution > 0:
+            from nepf_core.render.occupancy import OccupancyConfig, OccupancyGrid
+            self.occupancy = OccupancyGrid(OccupancyConfig(resolution=cfg.occupancy_resolution))
+            r = cfg.occupancy_resolution
+            # cells the masks' visual hull allows (all True without masks)
+            self.register_buffer("hull", torch.ones(r, r, r, dtype=torch.bool))
+
+    # ---- the FieldQuery protocol used by export and evaluation (normalised frame) ----
+    @torch.no_grad()
+    def query_sdf(self, x: Tensor) -> Tensor:
+        return self.sdf.sdf(x)
+
+    def query_normal(self, x: Tensor) -> Tensor:
+        from nepf_core.fields.gradients import sdf_gradient_autograd
+        _, _, g = sdf_gradient_autograd(self.sdf, x, create_graph=False)
+        return (g / g.norm(dim=-1, keepdim=True).clamp_min(1e-8)).detach()
+
+    @torch.no_grad()
+    def query_material(self, x: Tensor, n: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        _, feat = self.sdf(x)
+        return self.material(x, n, feat)
+
+    @torch.no_grad()
+    def query_light(self, x: Tensor, n: Tensor) -> tuple[Tensor, Tensor]:
+        _, feat = self.sdf(x)
+        return self.photon(x, n, feat)
+
+
+class ModelFieldQuery:
+    """Adapter from :class:`NePFModel` to the export's FieldQuery protocol (chunked)."""
+
+    def __init__(self, model: NePFModel, chunk: int = 65536) -> None:
+        self.model = model
+        self.chunk = chunk
+
+    def _chunks(self, fn, *xs):
+        outs = [fn(*[x[i:i + self.chunk] for x in xs]) for i in range(0, xs[0].shape[0], self.chunk)]
+        if isinstance(outs[0], tuple):
+            return tuple(torch.cat([o[j] for o in outs]) for j in range(len(outs[0])))
+        return torch.cat(outs)
+
+    def sdf(self, x: Tensor) -> Tensor:
+        return self._chunks(self.model.query_sdf, x)
+
+    def normal(self, x: Tensor) -> Tensor:
+        return self._chunks(self.model.query_normal, x)
+
+    def material(self, x: Tensor, n: Tensor):
+        return self._chunks(self.model.query_material, x, n)
+
+    def light(self, x: Tensor, n: Tensor):
+        return self._chunks(self.model.query_light, x, n)

@@ -1,0 +1,1 @@
+"""Volume rendering: NeuS weights, samplers, and the NePF renderer (L_r, L_vol, L_surf)."""

@@ -1,0 +1,226 @@
+"""The NePF renderer: one set of samples, the NeuS weights, and three colours per ray.
+
+    L_r    = sum_i w_i R(x_i, d, n_i, f_i)              (+ (1 - sum w) B(d) without masks)
+    L_vol  = sum_i w_i f_bsdf(l_i, v, n_i; c_i, r_i, m_i) I_i (n_i . l_i)^+   (same background)
+    L_surf = f_bsdf(...) I (n . l)^+  at i* = argmax_i w_i              (surface PBR)
+
+with ``v = -d`` and ``n_i = grad f / |grad f|``. Heads (radiance, photon, material) are
+evaluated only where ``w_i > head_weight_threshold`` (0 evaluates every sample); skipped
+samples contribute at most ``threshold`` each to any colour, which is below 8-bit precision
+for the default fast threshold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from nepf_core import bsdf
+from nepf_core.fields.gradients import hessian_diag_from_pairs, sdf_gradient_autograd, sdf_gradient_central
+from nepf_core.rays import RayBatch
+from nepf_core.render.neus import alpha_from_sdf, annealed_cos, max_weight_index, weights_from_alpha
+from nepf_core.render.sampling import hierarchical_z, near_far_from_sphere, stratified_z
+
+
+@dataclass
+class RenderConfig:
+    """How rays are sampled and shaded."""
+
+    n_samples: int = 64
+    """Coarse samples per ray (uniform in the paper preset)."""
+    n_importance: int = 64
+    """NeuS importance samples per ray (added to n_samples)."""
+    up_sample_steps: int = 4
+    """Rounds of NeuS up-sampling (n_importance / steps samples each)."""
+    perturb: bool = True
+    """Jitter coarse samples during training."""
+    sampler: str = "neus"
+    """``neus`` (uniform + importance) or ``occupancy`` (occupancy-grid guided)."""
+    normals: str = "autograd"
+    """``autograd`` (double backward) or ``fd`` (central differences, 6 extra SDF calls)."""
+    alpha_mode: str = "midpoint"
+    """``midpoint``: NeuS's section opacity from the mid-point SDF and the ray-normal
+    cosine (needs the gradient at every sample). ``sample``: the same logistic-CDF ratio
+    from the SDF at consecutive samples, ``alpha_i = (Phi(s f_i) - Phi(s f_{i+1})) / Phi(s f_i)``,
+    which needs no gradient, is exact across skipped gaps, and lets the fast preset take
+    finite-difference normals only where a head is evaluated."""
+    eikonal_fraction: float = 0.25
+    """``sample`` mode: extra random samples (fraction of all) that get the eikonal loss."""
+    head_weight_threshold: float = 0.0
+    """Evaluate radiance/photon/material only where w_i exceeds this (0: everywhere)."""
+    hessian_fraction: float = 0.1
+    """Fraction of samples that get the Hessian regulariser (autograd normals only; with
+    fd normals the Hessian diagonal comes for free on every sample)."""
+    lambertian: bool = False
+    """Use the Lambertian diffuse (paper ablation) instead of Disney + retro-reflection."""
+    specular: bool = True
+    """Evaluate the GGX specular lobe (adaptivity can switch it off)."""
+    amp_heads: bool = False
+    """bf16 autocast for the radiance / photon / material networks only (CUDA). The SDF, the
+    NeuS density and the BSDF stay in fp32: a bf16 SDF near the surface is off by ~1e-3,
+    which at inv_s >= 1e3 changes the density a lot."""
+
+
+@dataclass
+class RenderOutput:
+    """Per-ray results (``R`` rays) and per-sample regulariser terms."""
+
+    rgb_r: Tensor
+    rgb_vol: Tensor
+    rgb_surf: Tensor
+    weight_sum: Tensor
+    w_max: Tensor
+    depth: Tensor
+    eikonal: Tensor
+    """``| |grad f| - 1 |`` on samples inside the unit sphere, ``[P]``."""
+    hessian: Tensor
+    """``sum_i |H_ii|`` on a subset of samples, ``[Q]`` (may be empty)."""
+    surf: dict = field(default_factory=dict)
+    """At the max-weight sample: x, normal, light_dir, intensity, albedo, roughness,
+    metallic, specular (share of L_surf from the specular lobe, no grad)."""
+    n_samples: int = 0
+    n_head_evals: int = 0
+    inv_s: float = 0.0
+    skip_fraction: float | None = None
+    """Occupancy sampler only: mean over rays of the fraction of ``[near, far]`` skipped as
+    empty space (no samples placed there; 1 for rays that meet no occupied cell)."""
+
+
+def _expand(t: Tensor, S: int) -> Tensor:
+    return t[:, None, :].expand(-1, S, -1).reshape(-1, t.shape[-1])
+
+
+def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_anneal: float = 1.0,
+                generator: torch.Generator | None = None, need_surface_extras: bool = False) -> RenderOutput:
+    """Render ``rays`` with ``model`` (a :class:`nepf_core.model.NePFModel`).
+
+    Shapes: rays of length ``R``; returns :class:`RenderOutput` with ``[R, 3]`` colours.
+    """
+    o, d = rays.origins, rays.directions
+    R = o.shape[0]
+    near, far, hit = near_far_from_sphere(o, d)
+    sdf_only = model.sdf.sdf
+    skip = None
+    if cfg.sampler == "occupancy" and getattr(model, "occupancy", None) is not None:
+        rs = model.occupancy.sample_along_rays(o, d, near, far, cfg.n_samples, perturb=train and cfg.perturb)
+        z, skip = rs.t_vals, float(rs.skip_fraction.mean())
+        max_dist = model.occupancy.cell_size  # never let a section span a skipped gap
+        z = hierarchical_z(o, d, z, sdf_only, cfg.n_importance, cfg.up_sample_steps,
+                           base_inv_s=max(64.0, float(model.deviation().detach())))
+    else:
+        z = stratified_z(near, far, cfg.n_samples, perturb=train and cfg.perturb, generator=generator)
+        z = hierarchical_z(o, d, z, sdf_only, cfg.n_importance, cfg.up_sample_steps)
+        max_dist = None
+    S = z.shape[1]
+    dists = z[:, 1:] - z[:, :-1]
+    dists = torch.cat([dists, dists[:, -1:].clamp_min(1e-4)], -1)
+    if max_dist is not None:
+        dists = dists.clamp_max(max_dist)
+    inv_s = model.deviation()
+    hess = o.new_zeros(0)
+    if cfg.alpha_mode == "sample":
+        mid = z
+        pts = (o[:, None, :] + d[:, None, :] * z[..., None]).reshape(-1, 3)
+        dirs = _expand(d, S)
+        sdf, feat = model.sdf(pts)
+        f = sdf.reshape(R, S)
+        prev_cdf = torch.sigmoid(f[:, :-1] * inv_s)
+        next_cdf = torch.sigmoid(f[:, 1:] * inv_s)
+        alpha = ((prev_cdf - next_cdf + 1e-5) / (prev_cdf + 1e-5)).clip(0.0, 1.0)
+        alpha = torch.cat([alpha, torch.zeros_like(alpha[:, :1])], -1)
+        weights = weights_from_alpha(alpha)
+        # gradients (FD) only where a head is evaluated, plus a random subset for the eikonal
+        w_flat = weights.reshape(-1).detach()
+        need = w_flat > cfg.head_weight_threshold
+        idx_max = weights.argmax(-1)
+        need[torch.arange(R, device=o.device) * S + idx_max] = True
+        if train and cfg.eikonal_fraction > 0:
+            need |= torch.rand(need.shape, device=o.device) < cfg.eikonal_fraction
+        gidx = need.nonzero(as_tuple=True)[0]
+        from nepf_core.fields.fd_normals import sdf_gradient_fd
+        g_sub, _ = sdf_gradient_fd(sdf_only, pts[gidx], model.sdf.fd_step(), scheme="tetra", center="mean")
+        grad = pts.new_zeros(pts.shape[0], 3).index_copy(0, gidx, g_sub)
+        gnorm_sub = g_sub.norm(dim=-1)
+        eikonal = (gnorm_sub - 1.0).abs()[pts[gidx].norm(dim=-1) < 1.0]
+        gnorm = grad.norm(dim=-1)
+    else:
+        mid = z + dists * 0.5
+        pts = (o[:, None, :] + d[:, None, :] * mid[..., None]).reshape(-1, 3)
+        dirs = _expand(d, S)
+        if cfg.normals == "fd":
+            sdf, feat = model.sdf(pts)
+            eps = model.sdf.fd_step()
+            grad, pairs = sdf_gradient_central(sdf_only, pts, eps)
+            if train:
+                hess = hessian_diag_from_pairs(pairs, sdf, eps).abs().sum(-1)
+        else:
+            sdf, feat, grad = sdf_gradient_autograd(model.sdf, pts, create_graph=train)
+            if train and cfg.hessian_fraction > 0:
+                q = max(1, int(pts.shape[0] * cfg.hessian_fraction))
+                sub = torch.randint(0, pts.shape[0], (q,), device=pts.device)
+                eps = model.sdf.fd_step()
+                _, pairs = sdf_gradient_central(sdf_only, pts[sub], eps)
+                hess = hessian_diag_from_pairs(pairs, sdf[sub], eps).abs().sum(-1)
+        true_cos = (dirs * grad).sum(-1)
+        cos = annealed_cos(true_cos, cos_anneal if train else 1.0)
+        alpha = alpha_from_sdf(sdf.reshape(R, S), cos.reshape(R, S), dists, inv_s)
+        weights = weights_from_alpha(alpha)
+        inside = pts.norm(dim=-1) < 1.0
+        gnorm = grad.norm(dim=-1)
+        eikonal = (gnorm - 1.0).abs()[inside]
+    weight_sum = weights.sum(-1)
+
+    normals = grad / gnorm.clamp_min(1e-8)[:, None]
+    w_flat = weights.reshape(-1)
+    idx, w_max = max_weight_index(weights)
+    flat_max = torch.arange(R, device=o.device) * S + idx
+    if cfg.head_weight_threshold > 0:
+        sel = w_flat.detach() > cfg.head_weight_threshold
+        sel[flat_max] = True  # the surface sample is always shaded
+        sel_idx = sel.nonzero(as_tuple=True)[0]
+    else:
+        sel_idx = torch.arange(pts.shape[0], device=o.device)
+    xs, vs, ns, gs, fs = pts[sel_idx], dirs[sel_idx], normals[sel_idx], grad[sel_idx], feat[sel_idx]
+    with torch.autocast(device_type=xs.device.type, dtype=torch.bfloat16,
+                        enabled=cfg.amp_heads and xs.device.type == "cuda"):
+        rad = model.radiance(xs, vs, gs, fs)
+        light_dir, intensity = model.photon(xs, ns, fs)
+        albedo, rough, metal = model.material(xs, ns, fs)
+    rad, light_dir, intensity = rad.float(), light_dir.float(), intensity.float()
+    albedo, rough, metal = albedo.float(), rough.float(), metal.float()
+    pbr = bsdf.shade(ns, light_dir, -vs, albedo, rough[:, None], metal[:, None], intensity[:, None],
+                     lambertian=cfg.lambertian, specular=cfg.specular)
+
+    P = pts.shape[0]
+    rad_full = pts.new_zeros(P, 3).index_copy(0, sel_idx, rad)
+    pbr_full = pts.new_zeros(P, 3).index_copy(0, sel_idx, pbr)
+    w3 = weights[..., None]
+    rgb_r = (w3 * rad_full.reshape(R, S, 3)).sum(1)
+    rgb_vol = (w3 * pbr_full.reshape(R, S, 3)).sum(1)
+    rgb_surf = pbr_full[flat_max]
+    if getattr(model, "background", None) is not None:
+        bg = model.background(d)
+        rgb_r = rgb_r + (1.0 - weight_sum)[:, None] * bg
+        rgb_vol = rgb_vol + (1.0 - weight_sum)[:, None] * bg
+
+    # surface quantities at the max-weight sample, for losses and rendering
+    pos = torch.full((P,), -1, dtype=torch.long, device=o.device)
+    pos[sel_idx] = torch.arange(sel_idx.shape[0], device=o.device)
+    k = pos[flat_max]
+    surf = {
+        "x": pts[flat_max], "normal": normals[flat_max], "light_dir": light_dir[k],
+        "intensity": intensity[k], "albedo": albedo[k], "roughness": rough[k], "metallic": metal[k],
+    }
+    if need_surface_extras:
+        with torch.no_grad():
+            diffuse_only = bsdf.shade(ns[k], light_dir[k], -vs[k], albedo[k], rough[k][:, None], metal[k][:, None],
+                                      intensity[k][:, None], lambertian=cfg.lambertian, specular=False)
+            total = rgb_surf.detach().sum(-1)
+            surf["specular"] = ((total - diffuse_only.sum(-1)).clamp_min(0) / total.clamp_min(1e-6))
+            surf["specular_abs"] = (rgb_surf.detach() - diffuse_only).clamp_min(0).mean(-1)
+    depth = (weights * mid).sum(-1)
+    return RenderOutput(rgb_r=rgb_r, rgb_vol=rgb_vol, rgb_surf=rgb_surf, weight_sum=weight_sum, w_max=w_max,
+                        depth=depth, eikonal=eikonal, hessian=hess, surf=surf, n_samples=int(P),
+                        n_head_evals=int(sel_idx.shape[0]), inv_s=float(inv_s.detach()), skip_fraction=skip)

@@ -1,0 +1,267 @@
+"""Adaptivity: what fit() leaves out, when, and why (report.json).
+
+Unit tests drive :class:`nepf_core.adaptivity.Adaptivity` with fake render outputs; two
+short real fits check the decisions that come from the data (masks / no masks, visual hull,
+empty-space skipping and the fraction of samples it saves).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from nepf_core.adaptivity import Adaptivity
+from nepf_core.config import fast, tiny
+
+
+def _adapt(*, enabled=True, iters_fixed=True, iters=1000, w_hessian=5e-4):
+    cfg = tiny()
+    cfg.train.iters = iters
+    cfg.loss.w_hessian = w_hessian
+    return Adaptivity(cfg, enabled=enabled, iters_fixed=iters_fixed), cfg
+
+
+def _out(share=None, metallic=0.0, n=32, opaque=True, skip=None):
+    """A RenderOutput-like object: ``n`` rays, all on the surface when ``opaque``."""
+    surf = {"metallic": torch.full((n,), float(metallic))}
+    if share is not None:
+        surf["specular"] = torch.full((n,), float(share))
+    return SimpleNamespace(weight_sum=torch.full((n,), 0.9 if opaque else 0.1), surf=surf, skip_fraction=skip)
+
+
+def _losses(eik=0.0):
+    return {"loss_eik": torch.tensor(float(eik))}
+
+
+def _names(a, decision):
+    return [d for d in a.decisions if d["decision"] == decision]
+
+
+# ---------------------------------------------------------------- specular lobe
+def test_specular_dropped_after_patience_diffuse_checks():
+    a, cfg = _adapt()
+    assert cfg.render.specular
+    assert a.wants_specular_stats(100) and not a.wants_specular_stats(150) and not a.wants_specular_stats(0)
+    # before the warm-up (10% of 1000 steps) nothing is decided
+    a.on_step(50, _out(share=0.0), _losses())
+    assert a._diffuse_streak == 0
+    for k, step in enumerate((100, 200)):
+        a.on_step(step, _out(share=0.001, metallic=0.01), _losses())
+        assert cfg.render.specular and a._diffuse_streak == k + 1
+    # a glossy check resets the streak
+    a.on_step(300, _out(share=0.5, metallic=0.01), _losses())
+    assert cfg.render.specular and a._diffuse_streak == 0
+    # metallic alone also counts as "not diffuse"
+    a.on_step(400, _out(share=0.001, metallic=0.5), _losses())
+    assert a._diffuse_streak == 0
+    for step in (500, 600, 700):
+        a.on_step(step, _out(share=0.001, metallic=0.01), _losses())
+    assert not cfg.render.specular
+    (d,) = _names(a, "specular_lobe")
+    assert d["value"] is False and d["step"] == 700 and "diffuse" in d["reason"]
+    assert a.step_stats()["specular_share"] == pytest.approx(0.001)
+
+
+def test_specular_needs_enough_surface_rays():
+    a, cfg = _adapt()
+    for step in (100, 200, 300, 400):
+        a.on_step(step, _out(share=0.0, opaque=False), _losses())  # no ray with sum w > 0.5
+    assert cfg.render.specular and a._diffuse_streak == 0
+
+
+def _dropped():
+    a, cfg = _adapt()
+    for step in (100, 200, 300):
+        a.on_step(step, _out(share=0.0), _losses())
+    assert not cfg.render.specular
+    return a, cfg
+
+
+def test_specular_reenabled_when_share_would_be_large():
+    a, cfg = _dropped()
+    a.on_step(400, _out(share=0.03), _losses())  # above spec_thr but below 2 spec_thr: stays off
+    assert not cfg.render.specular
+    a.on_step(500, _out(share=0.2), _losses())
+    assert cfg.render.specular
+    d = _names(a, "specular_lobe")[-1]
+    assert d["value"] is True and d["step"] == 500 and "share" in d["reason"]
+    assert a._diffuse_streak == 0
+
+
+def test_specular_reenabled_by_highlight_residual():
+    a, cfg = _dropped()
+    a.on_highlight_residual(400, 2.0)  # below highlight_ratio = 3
+    assert not cfg.render.specular
+    a.on_highlight_residual(500, 7.5)
+    assert cfg.render.specular
+    d = _names(a, "specular_lobe")[-1]
+    assert d["value"] is True and d["step"] == 500 and "brightest" in d["reason"]
+    # while the lobe is on, a residual changes nothing
+    n = len(a.decisions)
+    a.on_highlight_residual(600, 9.0)
+    assert len(a.decisions) == n
+
+
+def test_disabled_adaptivity_keeps_every_term():
+    a, cfg = _adapt(enabled=False)
+    assert not a.wants_specular_stats(100)
+    for step in range(100, 1001, 100):
+        a.on_step(step, _out(share=0.0), _losses(eik=0.0))
+    a.on_highlight_residual(500, 10.0)
+    assert cfg.render.specular and cfg.loss.w_hessian == 5e-4
+    assert not _names(a, "specular_lobe") and not _names(a, "hessian_loss")
+
+
+# ---------------------------------------------------------------- hessian
+def test_hessian_follows_the_eikonal_ema():
+    a, cfg = _adapt()
+    # smooth surface: EMA of 0.01 stays below eik_thr = 0.05 -> off at the next check
+    for step in range(1, 101):
+        a.on_step(step, _out(), _losses(eik=0.01))
+    assert cfg.loss.w_hessian == 0.0
+    (d,) = _names(a, "hessian_loss")
+    assert d["value"] is False and d["step"] == 100 and "<=" in d["reason"]
+    # rough again: the EMA climbs over 0.05 within 100 steps of eik = 0.5 -> on at step 200
+    for step in range(101, 201):
+        a.on_step(step, _out(), _losses(eik=0.5))
+    assert a._eik_ema > a.eik_thr and cfg.loss.w_hessian == 5e-4
+    d = _names(a, "hessian_loss")[-1]
+    assert d["value"] is True and d["step"] == 200
+    # decisions are taken only at check steps
+    for step in range(201, 300):
+        a.on_step(step, _out(), _losses(eik=0.0))
+    assert cfg.loss.w_hessian == 5e-4
+
+
+def test_hessian_never_switched_on_when_the_preset_has_none():
+    a, cfg = _adapt(w_hessian=0.0)
+    for step in range(1, 301):
+        a.on_step(step, _out(), _losses(eik=1.0))
+    assert cfg.loss.w_hessian == 0.0 and not _names(a, "hessian_loss")
+
+
+# ---------------------------------------------------------------- iterations
+@pytest.mark.parametrize("iters_fixed,enabled,stops", [(False, True, True), (True, True, False), (False, False, False)])
+def test_plateau_early_stop_only_when_iterations_are_free(iters_fixed, enabled, stops):
+    a, cfg = _adapt(iters_fixed=iters_fixed, enabled=enabled)
+    assert cfg.train.plateau_patience == 3
+    for step, v in ((100, 20.0), (200, 22.0), (300, 22.05), (400, float("nan")), (500, 21.0)):
+        a.on_test_eval(step, {"test_psnr": v})
+    assert not a.stop_requested  # 2 evaluations without a 0.1 dB gain (NaN ignored)
+    a.on_test_eval(600, {"test_psnr": 22.09})
+    assert a.stop_requested is stops
+    found = _names(a, "early_stop")
+    assert bool(found) is stops
+    if stops:
+        assert found[0]["step"] == 600 and "plateau" in found[0]["reason"] and "22.00" in found[0]["reason"]
+
+
+def test_plateau_counter_resets_on_improvement():
+    a, _ = _adapt(iters_fixed=False)
+    for step, v in enumerate((20.0, 20.0, 20.0, 21.0, 21.05, 21.0), 1):
+        a.on_test_eval(step, {"test_psnr": v})
+    assert not a.stop_requested and a._evals_since_best == 2
+
+
+# ---------------------------------------------------------------- data-driven, before training
+@pytest.mark.parametrize("has_masks", [True, False])
+def test_mask_and_background_decisions(has_masks):
+    a, cfg = _adapt()
+    cfg.model.background = not has_masks  # the opposite of what should be decided
+    a.decide_before_training(SimpleNamespace(has_masks=has_masks))
+    assert a.use_mask_loss is has_masks
+    assert cfg.model.background is (not has_masks)
+    (m,) = _names(a, "mask_loss")
+    (b,) = _names(a, "background_model")
+    assert m["value"] is has_masks and b["value"] is (not has_masks)
+    assert m["reason"] and b["reason"]
+    assert not _names(a, "empty_space_skipping")  # tiny has no occupancy grid
+
+
+def test_mask_loss_off_when_its_weight_is_zero_and_occupancy_recorded():
+    cfg = fast()
+    cfg.loss.w_mask = 0.0
+    a = Adaptivity(cfg, enabled=True, iters_fixed=True)
+    a.decide_before_training(SimpleNamespace(has_masks=True))
+    assert a.use_mask_loss is False and cfg.model.background is False
+    (e,) = _names(a, "empty_space_skipping")
+    assert e["value"] is True and "64^3" in e["reason"]
+
+
+def test_skipped_fraction_stats_report_and_resume(tmp_path):
+    a, _ = _adapt()
+    assert "skipped_fraction" not in a.step_stats()
+    for step, skip in enumerate((0.2, 0.4, None, 0.6), 1):  # None: no occupancy sampler
+        a.on_step(step, _out(skip=skip), _losses())
+    assert a.step_stats()["skipped_fraction"] == pytest.approx(0.6)
+    b, _ = _adapt()
+    b.load_state(json.loads(json.dumps(a.state())))  # checkpoints store it as JSON-able data
+    rep = b.write_report(tmp_path / "report.json", step=4, status="succeeded", nonfinite=0)
+    assert rep["samples_saved_fraction"] == pytest.approx(0.4)
+    assert "skipped" in rep["samples_saved_note"]
+    assert json.loads((tmp_path / "report.json").read_text())["samples_saved_fraction"] == pytest.approx(0.4)
+    c, _ = _adapt()
+    assert "samples_saved_fraction" not in c.write_report(tmp_path / "r2.json", step=0, status="succeeded", nonfinite=0)
+
+
+# ---------------------------------------------------------------- real fits
+def _records(run):
+    return [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+def test_fit_without_masks_uses_background_and_no_mask_loss(tmp_path):
+    from nepf_core.data.detect import load_scene
+    from nepf_core.data.synth import make_scene
+    from nepf_core.fit import fit, load_model
+
+    make_scene(tmp_path / "s", n_views=4, n_test=0, resolution=24, supersample=1, masks=False, write_mesh=False)
+    scene = load_scene(tmp_path / "s" / "dtu")
+    assert not scene.has_masks
+    cfg = tiny()
+    cfg.train.iters, cfg.train.batch_rays, cfg.train.log_every, cfg.train.sync_every = 4, 64, 2, 0
+    res = fit(scene, tmp_path / "run", cfg, device="cpu")
+    rep = json.loads((tmp_path / "run" / "report.json").read_text())
+    dec = {d["decision"]: d for d in rep["decisions"]}
+    assert dec["mask_loss"]["value"] is False and dec["background_model"]["value"] is True
+    assert rep["final_switches"]["mask_loss"] is False and rep["final_switches"]["background"] is True
+    assert res.report == rep
+    for r in _records(tmp_path / "run"):
+        assert r["loss_mask"] == 0.0
+    model, _, _ = load_model(tmp_path / "run", "cpu")
+    assert model.background is not None  # the saved config rebuilds the background model
+
+
+def test_fast_fit_with_masks_carves_the_visual_hull_and_reports_samples_saved(tmp_path):
+    from nepf_core.data.detect import load_scene
+    from nepf_core.data.synth import make_scene
+    from nepf_core.fit import fit
+
+    # a wide field of view, so the object covers part of each frame and the hull culls cells
+    make_scene(tmp_path / "s", n_views=6, n_test=0, resolution=24, supersample=1, fov_deg=75.0, write_mesh=False)
+    scene = load_scene(tmp_path / "s" / "dtu")
+    cfg = fast()
+    cfg.model.sdf_grid = {"base_resolution": 8, "max_resolution": 32}
+    cfg.model.occupancy_resolution = 16
+    cfg.train.iters, cfg.train.batch_rays, cfg.train.log_every = 6, 64, 2
+    cfg.train.sync_every, cfg.train.eval_every_s, cfg.train.occupancy_every = 0, 0.0, 3
+    run = tmp_path / "run"
+    fit(scene, run, cfg, device="cpu")
+    rep = json.loads((run / "report.json").read_text())
+    dec = {d["decision"]: d for d in rep["decisions"]}
+    assert dec["mask_loss"]["value"] is True and dec["background_model"]["value"] is False
+    assert dec["empty_space_skipping"]["value"] is True
+    assert dec["visual_hull"]["value"] is True and "culled" in dec["visual_hull"]["reason"]
+    assert 0.0 < rep["occupied_fraction"] < 1.0
+    assert 0.0 < rep["samples_saved_fraction"] < 1.0 and rep["samples_saved_note"]
+    train = [r for r in _records(run) if r["kind"] == "train"]
+    assert train and all(0.0 <= r["skipped_fraction"] <= 1.0 for r in train)
+    # no samples outside the mask bounds: the occupancy grid never exceeds the visual hull
+    ck = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)["model"]
+    hull, occ = ck["hull"], ck["occupancy.occ"]
+    assert 0.0 < hull.float().mean() < 1.0
+    assert not (occ & ~hull).any()
+    assert math.isfinite(rep["samples_saved_fraction"])

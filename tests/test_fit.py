@@ -1,0 +1,111 @@
+"""fit(): exact resume, the non-finite guard, cancel, time budget, and records written."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from nepf_core.callbacks import FitCallbacks
+from nepf_core.config import tiny
+from nepf_core.fit import FitError, fit
+
+
+def _cfg(iters=6):
+    cfg = tiny()
+    cfg.train.iters = iters
+    cfg.train.log_every = 1
+    cfg.train.sync_every = 0
+    cfg.train.checkpoint_every = 3
+    cfg.train.batch_rays = 64
+    return cfg
+
+
+def _losses(run):
+    recs = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
+    return {r["step"]: r["loss"] for r in recs if r.get("kind") == "train"}
+
+
+def test_resume_gives_the_same_losses_as_an_uninterrupted_run(small_scene, tmp_path):
+    a = tmp_path / "a"
+    fit(small_scene, a, _cfg(), device="cpu")
+    b = tmp_path / "b"
+    stop_after = {"n": 0}
+
+    def should_stop():
+        stop_after["n"] += 1
+        return stop_after["n"] > 3  # checked before each step: 3 steps run, then stop
+
+    r1 = fit(small_scene, b, _cfg(), device="cpu", callbacks=FitCallbacks(should_stop=should_stop))
+    assert r1.status == "cancelled" and r1.step == 3
+    r2 = fit(small_scene, b, _cfg(), device="cpu", resume=True)
+    assert r2.status == "succeeded" and r2.step == 6
+    la, lb = _losses(a), _losses(b)
+    assert sorted(la) == [1, 2, 3, 4, 5, 6]
+    for s in range(1, 7):
+        assert la[s] == pytest.approx(lb[s], rel=1e-6, abs=1e-9), (s, la[s], lb[s])
+
+
+def test_records_and_report(small_scene, tmp_path):
+    cfg = _cfg(8)
+    cfg.train.sync_every = 4
+    cfg.train.sync_rays = 128
+    res = fit(small_scene, tmp_path / "r", cfg, device="cpu")
+    recs = [json.loads(l) for l in (tmp_path / "r" / "metrics.jsonl").read_text().splitlines()]
+    train = [r for r in recs if r["kind"] == "train"]
+    sync = [r for r in recs if r["kind"] == "sync"]
+    assert len(train) == 8 and len(sync) == 2
+    for key in ("loss_r", "loss_surf", "loss_vol", "loss_eik", "loss_light", "loss_mask", "inv_s",
+                "rays_per_s", "samples_per_s", "wall_s"):
+        assert key in train[0] and math.isfinite(train[0][key])
+    walls = [r["wall_s"] for r in train]
+    assert walls == sorted(walls)
+    for k in ("psnr_r", "psnr_surf", "psnr_vol"):
+        assert math.isfinite(sync[0][k])
+    rep = json.loads((tmp_path / "r" / "report.json").read_text())
+    names = [d["decision"] for d in rep["decisions"]]
+    assert "mask_loss" in names and "background_model" in names
+    assert (tmp_path / "r" / "checkpoints" / "latest.pt").exists()
+    assert (tmp_path / "r" / "error_vs_time.png").stat().st_size > 1000
+    prog = json.loads((tmp_path / "r" / "progress.json").read_text())
+    assert prog["step"] == 8 and prog["fraction"] == 1.0
+
+
+def test_nonfinite_loss_skips_then_fails(small_scene, tmp_path, monkeypatch):
+    import nepf_core.fit as fitmod
+    real = fitmod.compute_losses
+    calls = {"n": 0}
+
+    def poisoned(out, rays, cfg, use_mask):
+        L = real(out, rays, cfg, use_mask=use_mask)
+        calls["n"] += 1
+        if calls["n"] in (2, 3):
+            L["loss"] = L["loss"] * float("nan")
+        return L
+
+    monkeypatch.setattr(fitmod, "compute_losses", poisoned)
+    res = fit(small_scene, tmp_path / "ok", _cfg(5), device="cpu")
+    assert res.nonfinite_steps == 2 and res.status == "succeeded"
+    for name, p in fitmod.NePFModel(_cfg().model).named_parameters():
+        pass
+    ck = torch.load(tmp_path / "ok" / "checkpoints" / "latest.pt", weights_only=False)
+    assert all(torch.isfinite(v).all() for v in ck["model"].values() if v.is_floating_point())
+    recs = [json.loads(l) for l in (tmp_path / "ok" / "metrics.jsonl").read_text().splitlines()]
+    assert recs[-1]["nonfinite_steps"] == 2
+
+    calls["n"] = -100  # poison every step now
+    monkeypatch.setattr(fitmod, "compute_losses",
+                        lambda out, rays, cfg, use_mask: {**real(out, rays, cfg, use_mask=use_mask), "loss": torch.tensor(float("inf"))})
+    cfg = _cfg(20)
+    cfg.train.max_nonfinite_steps = 4
+    with pytest.raises(FitError, match="non-finite"):
+        fit(small_scene, tmp_path / "bad", cfg, device="cpu")
+
+
+def test_time_budget_stops_and_writes_outputs(small_scene, tmp_path):
+    cfg = _cfg(10_000)
+    res = fit(small_scene, tmp_path / "t", cfg, device="cpu", time_budget_s=2.0)
+    assert res.status == "succeeded" and 0 < res.step < 10_000
+    assert res.wall_s >= 2.0
+    assert (tmp_path / "t" / "checkpoints" / "latest.pt").exists()

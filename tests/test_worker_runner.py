@@ -1,0 +1,182 @@
+"""Worker delivery semantics against the real job store (SQLite and PostgreSQL): claim, lease,
+redelivery cap, exactly-once completion, cancel, error mapping, and the reconciler."""
+
+from __future__ import annotations
+
+import datetime as dt
+import threading
+import time
+
+import pytest
+from sqlalchemy import update
+
+from api.db import Job, dispose_engines, session_factory, utcnow
+from api.reconcile import reconcile_once
+from api.settings import Settings
+from nepf_core.data.errors import DatasetError
+from service_fixtures import fake_run_job, make_dtu_dir, pg_database
+from worker.runner import JobRunner
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def store(request, tmp_path, monkeypatch):
+    monkeypatch.setenv("NEPF_FAKE_STEP_S", "0.01")
+    drop = None
+    if request.param == "sqlite":
+        url = f"sqlite:///{tmp_path / 'jobs.sqlite3'}"
+    else:
+        url, drop = pg_database("nepf_w")
+    settings = Settings(data_dir=tmp_path / "data", database_url=url, lease_s=1.0, heartbeat_s=0.1,
+                        max_deliveries=2)
+    Session = session_factory(url)
+    yield settings, Session
+    dispose_engines()
+    if drop:
+        drop()
+
+
+def new_job(settings, Session, **values) -> str:
+    values = {"config": {"preset": "tiny", "iters": 20}, **values}
+    job = Job(owner="w", queue="default", attempt_log=[], **values)
+    with Session() as s:
+        s.add(job)
+        s.commit()
+        jid = job.id
+    make_dtu_dir(settings.jobs_path / jid / "dataset", n=3, size=8)
+    return jid
+
+
+def get(Session, jid) -> Job:
+    with Session() as s:
+        return s.get(Job, jid)
+
+
+def test_claim_is_exclusive_and_finished_jobs_are_dropped(store):
+    settings, Session = store
+    jid = new_job(settings, Session)
+    a = JobRunner(settings, Session, jid, "A", run_job=fake_run_job)
+    assert a.claim() == "claimed"
+    assert JobRunner(settings, Session, jid, "B").claim() == "held"      # live lease elsewhere
+    assert a.finish("succeeded", None, {"status": "succeeded", "step": 20, "total": 20}) == "succeeded"
+    assert JobRunner(settings, Session, jid, "C").claim() == "finished"  # a late duplicate message
+    j = get(Session, jid)
+    assert j.status == "succeeded" and j.completions == 1 and j.attempts == 1 and j.lease_owner is None
+
+
+def test_expired_lease_lets_another_worker_take_over_and_only_one_completes(store):
+    settings, Session = store
+    jid = new_job(settings, Session)
+    a = JobRunner(settings, Session, jid, "A")
+    assert a.claim() == "claimed"
+    with Session() as s:   # A stalls: its lease runs out
+        s.execute(update(Job).where(Job.id == jid).values(lease_expires=utcnow() - dt.timedelta(seconds=1)))
+        s.commit()
+    b = JobRunner(settings, Session, jid, "B")
+    assert b.claim() == "claimed"
+    assert a.finish("succeeded", None, None) == "lease_lost"
+    assert b.finish("succeeded", None, None) == "succeeded"
+    j = get(Session, jid)
+    assert j.completions == 1 and j.attempts == 2 and [x["worker"] for x in j.attempt_log] == ["A", "B"]
+
+
+def test_redelivery_cap_fails_the_job(store):
+    settings, Session = store
+    jid = new_job(settings, Session, attempts=settings.max_deliveries)
+    assert JobRunner(settings, Session, jid, "A").claim() == "gave_up"
+    j = get(Session, jid)
+    assert j.status == "failed" and "NEPF_MAX_DELIVERIES=2" in j.error and j.completions == 1
+
+
+def test_cancel_before_claim(store):
+    settings, Session = store
+    jid = new_job(settings, Session, cancel_requested=True, status="running")
+    assert JobRunner(settings, Session, jid, "A").claim() == "cancelled"
+    assert get(Session, jid).status == "cancelled"
+
+
+def test_full_run_progress_and_cooperative_cancel(store):
+    settings, Session = store
+    jid = new_job(settings, Session, config={"preset": "tiny", "iters": 100000})
+    r = JobRunner(settings, Session, jid, "A", run_job=fake_run_job)
+    out = {}
+    t = threading.Thread(target=lambda: out.update(res=r.run()))
+    t.start()
+    deadline = time.monotonic() + 20
+    while get(Session, jid).step < 10 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert get(Session, jid).status == "running" and get(Session, jid).total == 100000
+    with Session() as s:
+        s.execute(update(Job).where(Job.id == jid).values(cancel_requested=True))
+        s.commit()
+    t.join(20)
+    assert out["res"] == "cancelled"
+    j = get(Session, jid)
+    assert j.status == "cancelled" and 10 <= j.step < 100000 and j.finished_at is not None
+    assert (settings.jobs_path / jid / "run" / "asset.glb").exists()     # partial export kept
+
+
+@pytest.mark.parametrize("exc,expect", [
+    (DatasetError("pose is singular", file="cameras.npz", view=2, code="singular_camera"),
+     "invalid dataset: [file cameras.npz, view 2] pose is singular"),
+    (RuntimeError("CUDA out of memory. Tried to allocate 2 GiB"), "out of memory"),
+    (ValueError("bad thing"), "training failed: ValueError: bad thing"),
+])
+def test_exceptions_become_failed_with_a_human_message(store, exc, expect):
+    settings, Session = store
+    jid = new_job(settings, Session)
+
+    def boom(*a, **k):
+        raise exc
+    assert JobRunner(settings, Session, jid, "A", run_job=boom).run() == "failed"
+    j = get(Session, jid)
+    assert j.status == "failed" and expect in j.error and j.completions == 1
+
+
+def test_reconciler_requeues_orphans_only(store):
+    settings, Session = store
+    now = utcnow()
+    old = now - dt.timedelta(seconds=30)
+    orphan_running = new_job(settings, Session, status="running", lease_owner="dead",
+                             lease_expires=now - dt.timedelta(seconds=5), enqueued_at=old)
+    live_running = new_job(settings, Session, status="running", lease_owner="alive",
+                           lease_expires=now + dt.timedelta(seconds=60), enqueued_at=old)
+    lost_queued = new_job(settings, Session, status="queued", enqueued_at=old)
+    waiting_queued = new_job(settings, Session, status="queued", enqueued_at=old)
+    fresh_queued = new_job(settings, Session, status="queued", enqueued_at=now)
+    never_sent = new_job(settings, Session, status="queued", enqueued_at=None, created_at=old)
+    done = new_job(settings, Session, status="succeeded", enqueued_at=old)
+
+    class Broker:
+        def waiting_job_ids(self):
+            return {waiting_queued}
+
+    sent = []
+    got = reconcile_once(settings, Session, lambda jid, q: sent.append(jid), Broker())
+    assert sorted(got) == sorted(sent) == sorted([orphan_running, lost_queued, never_sent])
+    j = get(Session, orphan_running)
+    assert j.status == "queued" and j.lease_owner is None and j.stage == "requeued"
+    assert get(Session, live_running).status == "running" and get(Session, done).status == "succeeded"
+    # a second pass right away sends nothing (the re-sends are reserved)
+    assert reconcile_once(settings, Session, lambda jid, q: sent.append(jid), Broker()) == []
+    assert fresh_queued not in sent
+
+
+def test_lease_lost_mid_run_stops_without_result(store):
+    """A worker that stalled past its lease (another took over) stops at its next step and writes nothing."""
+    settings, Session = store
+    jid = new_job(settings, Session, config={"preset": "tiny", "iters": 100000})
+    r = JobRunner(settings, Session, jid, "A", run_job=fake_run_job)
+    out = {}
+    t = threading.Thread(target=lambda: out.update(res=r.run()))
+    t.start()
+    deadline = time.monotonic() + 20
+    while get(Session, jid).step < 5 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    with Session() as s:   # B took the job over
+        s.execute(update(Job).where(Job.id == jid).values(lease_owner="B", lease_expires=utcnow() + dt.timedelta(seconds=60)))
+        s.commit()
+    t.join(20)
+    assert out["res"] == "lease_lost"
+    j = get(Session, jid)
+    assert j.status == "running" and j.lease_owner == "B" and j.completions == 0
+    assert not (settings.jobs_path / jid / "run" / "asset.glb").exists()     # no export into B's folder

@@ -1,0 +1,210 @@
+// Job list: status, progress with ETA, stage, thumbnail, created time, cancel / delete.
+// Live: one SSE stream per active job; the list itself is re-polled as a fallback.
+import { api } from '../api.js';
+import { followJob, normJob } from '../live.js';
+import { h, clear, fmtDuration, fmtTime, isFinal, toast } from '../util.js';
+
+const LIST_POLL_MS = 4000;
+/** SSE streams the list keeps open at once: browsers allow ~6 HTTP/1.1 connections per
+ * host, and the page still needs some for API calls. Other active rows follow the polled list. */
+const MAX_LIST_STREAMS = 3;
+
+export function progressBar(job) {
+  const pct = job.fraction === null ? null : Math.round(Math.max(0, Math.min(1, job.fraction)) * 100);
+  const label = pct === null ? 'Progress unknown' : `Progress ${pct}%`;
+  const eta = !isFinal(job.status) && job.eta_s !== null ? ` · ETA ${fmtDuration(job.eta_s)}` : '';
+  return h('div', { class: 'progress-wrap' },
+    h('div', {
+      class: `progress ${job.status}`, role: 'progressbar', 'aria-label': label,
+      'aria-valuemin': 0, 'aria-valuemax': 100, 'aria-valuenow': pct ?? undefined,
+    }, h('div', { class: 'bar', style: { width: `${pct ?? 0}%` } })),
+    h('span', { class: 'small muted progress-text' },
+      `${pct === null ? '—' : `${pct}%`}${job.stage ? ` · ${job.stage}` : ''}${eta}`));
+}
+
+export function statusBadge(status) {
+  return h('span', { class: `badge ${status}`, dataset: { status } }, status);
+}
+
+/** Load an artifact image through the authenticated API into an <img> (blob URL). */
+export function authImage(id, path, alt, cls = 'thumb') {
+  const img = h('img', { class: cls, alt, loading: 'lazy', width: 96, height: 96 });
+  const holder = h('div', { class: `${cls}-holder` }, img);
+  img.hidden = true;
+  api.artifactBlob(id, path)
+    .then((b) => {
+      img.src = URL.createObjectURL(b);
+      img.hidden = false;
+      img.onload = () => URL.revokeObjectURL(img.src);
+    })
+    .catch(() => holder.append(h('span', { class: 'thumb-empty', 'aria-hidden': 'true' }, '◌')));
+  return holder;
+}
+
+export function renderJobs(root) {
+  const listEl = h('div', { id: 'job-list', class: 'job-list', 'aria-live': 'polite', 'aria-busy': 'true' });
+  const empty = h('p', { class: 'muted', hidden: true, id: 'jobs-empty' }, 'No jobs yet. ',
+    h('a', { href: '#/upload' }, 'Upload a dataset'), ' to start one.');
+  const errEl = h('p', { class: 'error', role: 'alert', hidden: true });
+  root.append(
+    h('section', { class: 'page', 'aria-labelledby': 'jobs-title' },
+      h('div', { class: 'page-head' },
+        h('h1', { id: 'jobs-title' }, 'Jobs'),
+        h('a', { class: 'btn primary', href: '#/upload' }, 'New job')),
+      errEl, empty, listEl),
+  );
+
+  const rows = new Map(); // id -> {el, job, stop}
+  let stopped = false;
+  let timer = null;
+
+  function rowFor(job) {
+    const thumbSlot = h('div', { class: 'thumb-slot' });
+    const el = h('article', { class: 'job-row', dataset: { jobId: job.id }, 'aria-label': `Job ${job.name || job.id}` });
+    if (sessionStorage.getItem('nepf.newJob') === job.id) {
+      el.classList.add('highlight');
+      sessionStorage.removeItem('nepf.newJob');
+    }
+    const entry = { el, job: null, thumbSlot, thumbLoaded: false, stop: null };
+    rows.set(job.id, entry);
+    updateRow(entry, job);
+    return entry;
+  }
+
+  function updateRow(entry, job) {
+    const prev = entry.job;
+    entry.job = job;
+    const { el } = entry;
+    el.dataset.status = job.status;
+    // thumbnail: once the job has produced it (at the end of export)
+    if (!entry.thumbLoaded && (job.status === 'succeeded' || job.status === 'cancelled')) {
+      entry.thumbLoaded = true;
+      // only ask for the thumbnail when the manifest lists it (no 404s in the console)
+      api.artifacts(job.id).then((res) => {
+        const arts = res?.artifacts || [];
+        const thumb = arts.find((a) => a.path === 'previews/thumb.png') ||
+          arts.find((a) => a.kind === 'preview' && /\.png$/i.test(a.path));
+        if (thumb && !stopped) clear(entry.thumbSlot).append(authImage(job.id, thumb.path, `Preview of ${job.name || `job ${job.id}`}`));
+      }).catch(() => {});
+    }
+    if (!entry.thumbSlot.firstChild) {
+      entry.thumbSlot.append(h('div', { class: 'thumb-holder' }, h('span', { class: 'thumb-empty', 'aria-hidden': 'true' }, '◌')));
+    }
+    const active = !isFinal(job.status);
+    const cancelBtn = h('button', {
+      type: 'button', class: 'btn small', disabled: !active, dataset: { action: 'cancel' },
+      'aria-label': `Cancel job ${job.id}`,
+      onclick: async () => {
+        cancelBtn.disabled = true;
+        try {
+          await api.cancel(job.id);
+          toast('Cancel requested');
+          refresh();
+        } catch (e) {
+          toast(`Cancel failed: ${e.message}`, 'error');
+          cancelBtn.disabled = false;
+        }
+      },
+    }, 'Cancel');
+    const delBtn = h('button', {
+      type: 'button', class: 'btn small danger', dataset: { action: 'delete' }, disabled: active,
+      title: active ? 'Cancel the job first' : null,
+      'aria-label': `Delete job ${job.id}`,
+      onclick: async () => {
+        if (!confirm(`Delete job ${job.id} and its results?`)) return;
+        delBtn.disabled = true;
+        try {
+          await api.remove(job.id);
+          entry.stop?.();
+          rows.delete(job.id);
+          el.remove();
+          toast('Job deleted');
+          refresh();
+        } catch (e) {
+          toast(`Delete failed: ${e.message}`, 'error');
+          delBtn.disabled = false;
+        }
+      },
+    }, 'Delete');
+    const focused = el.contains(document.activeElement) ? document.activeElement.dataset.action || (document.activeElement.classList.contains('job-link') ? 'link' : null) : null;
+    clear(el).append(
+      entry.thumbSlot,
+      h('div', { class: 'job-main' },
+        h('div', { class: 'job-title' },
+          h('a', { href: `#/jobs/${encodeURIComponent(job.id)}`, class: 'job-link' }, job.name || `Job ${job.id}`),
+          statusBadge(job.status),
+          job.preset ? h('span', { class: 'chip' }, job.preset) : null),
+        progressBar(job),
+        h('div', { class: 'small muted' },
+          h('span', {}, 'Created '), h('time', { datetime: String(job.created || '') }, fmtTime(job.created)),
+          job.status === 'failed' && job.error ? h('span', { class: 'error-inline' }, ` · ${job.error}`) : null)),
+      h('div', { class: 'job-actions' },
+        h('a', { class: 'btn small', href: `#/jobs/${encodeURIComponent(job.id)}` }, 'Open'),
+        cancelBtn, delBtn),
+    );
+    if (focused) el.querySelector(focused === 'link' ? '.job-link' : `[data-action="${focused}"]`)?.focus();
+    // live stream for active jobs only
+    const streams = [...rows.values()].filter((r) => r.stop).length;
+    if (active && !entry.stop && streams < MAX_LIST_STREAMS) {
+      entry.stop = followJob(job.id, {
+        metrics: false,
+        onJob: (j) => {
+          if (!stopped && rows.get(j.id) === entry) updateRow(entry, { ...entry.job, ...pickLive(j) });
+        },
+      });
+    } else if (!active && entry.stop) {
+      entry.stop();
+      entry.stop = null;
+    }
+    window.__nepf.jobs = [...rows.values()].map((r) => ({ id: r.job.id, status: r.job.status, fraction: r.job.fraction, stage: r.job.stage }));
+  }
+
+  function pickLive(j) {
+    const out = {};
+    for (const [k, v] of Object.entries(j)) if (v !== null && v !== undefined && k !== 'raw') out[k] = v;
+    out.raw = j.raw;
+    return out;
+  }
+
+  async function refresh() {
+    try {
+      const res = await api.listJobs();
+      if (stopped) return; // the view was left while the request was in flight
+      const list = (Array.isArray(res) ? res : (res?.jobs || res?.items || [])).map(normJob).filter(Boolean);
+      errEl.hidden = true;
+      const seen = new Set();
+      list.sort((a, b) => String(b.created || '').localeCompare(String(a.created || '')));
+      list.forEach((job, i) => {
+        seen.add(job.id);
+        let entry = rows.get(job.id);
+        if (!entry) entry = rowFor(job);
+        else updateRow(entry, job);
+        if (listEl.children[i] !== entry.el) listEl.insertBefore(entry.el, listEl.children[i] || null);
+      });
+      for (const [id, entry] of rows) {
+        if (!seen.has(id)) {
+          entry.stop?.();
+          entry.el.remove();
+          rows.delete(id);
+        }
+      }
+      empty.hidden = list.length > 0;
+      listEl.setAttribute('aria-busy', 'false');
+      listEl.dataset.loaded = 'true';
+    } catch (e) {
+      errEl.textContent = `Could not load jobs: ${e.message}`;
+      errEl.hidden = false;
+    }
+    if (!stopped) {
+      clearTimeout(timer);
+      timer = setTimeout(refresh, LIST_POLL_MS);
+    }
+  }
+
+  refresh();
+  return () => {
+    stopped = true;
+    clearTimeout(timer);
+    for (const r of rows.values()) r.stop?.();
+  };
+}

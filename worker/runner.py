@@ -1,0 +1,307 @@
+"""Run one job: claim it, call ``run_job``, record the outcome. No Celery in here.
+
+Delivery semantics (see docs/SERVICE.md):
+
+* **claim**: one conditional UPDATE moves the job to ``running`` with this worker's lease,
+  only if it is queued/running, not cancelled, and nobody holds a live lease. A duplicate or
+  late message for a job that is finished or held elsewhere is dropped.
+* **redelivery cap**: ``attempts`` is incremented by every claim; past ``NEPF_MAX_DELIVERIES``
+  the job fails instead of running again (a job that kills its worker cannot loop forever).
+* **heartbeat** (every ``NEPF_HEARTBEAT_S``): renews the lease, writes the latest progress
+  (so progress writes are throttled to one per heartbeat), reads the cancel flag. If the lease
+  was lost (another worker took over after we stalled), training is stopped.
+* **completion**: one conditional UPDATE, only while we hold the lease and the job is running;
+  ``completions`` counts it, so a job can never be completed twice.
+* **resume**: ``run_job(..., resume=True)`` continues from ``RUN/checkpoints/latest.pt``.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import importlib
+import inspect
+import json
+import logging
+import os
+import socket
+import threading
+import traceback
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+from sqlalchemy import select, update
+from sqlalchemy.orm import sessionmaker
+
+from api.db import Job, utcnow
+from api.settings import Settings
+
+log = logging.getLogger("nepf.worker")
+
+
+class LeaseLost(RuntimeError):
+    """Raised from ``should_stop`` when this worker no longer holds the job's lease."""
+
+
+def worker_identity() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def resolve_run_job(spec: str) -> Callable[..., dict]:
+    mod, _, fn = spec.partition(":")
+    return getattr(importlib.import_module(mod), fn or "run_job")
+
+
+def human_error(exc: BaseException) -> str:
+    """A message a user can act on, for the job's ``error`` field."""
+    if hasattr(exc, "to_dict") and hasattr(exc, "message"):          # DatasetError
+        return f"invalid dataset: {exc}"
+    name = type(exc).__name__
+    text = str(exc).strip()
+    if "out of memory" in text.lower() or isinstance(exc, MemoryError):
+        return f"out of memory while training ({name}); try the 'fast' or 'tiny' preset or a smaller dataset"
+    if isinstance(exc, NotImplementedError):
+        return f"not available in this NePF version: {text or name}"
+    if isinstance(exc, FileNotFoundError):
+        return f"a file the job needs is missing: {text}"
+    return f"training failed: {name}: {text}" if text else f"training failed: {name}"
+
+
+class JobRunner:
+    def __init__(self, settings: Settings, Session: sessionmaker, job_id: str,
+                 worker_id: Optional[str] = None, run_job: Optional[Callable[..., dict]] = None) -> None:
+        self.settings = settings
+        self.Session = Session
+        self.job_id = job_id
+        self.worker_id = worker_id or worker_identity()
+        self._run_job = run_job
+        self._progress: Optional[dict] = None
+        self._progress_dirty = False
+        self._first_step: Optional[int] = None
+        self._first_step_written = False
+        self._report_mtime: Optional[float] = None
+        self._cancel = False
+        self._lease_lost = False
+        self._lock = threading.Lock()
+        self._stop_hb = threading.Event()
+        self._last_poll = 0.0
+
+    # ------------------------------------------------------------------ DB helpers
+    def _lease_until(self) -> dt.datetime:
+        return utcnow() + dt.timedelta(seconds=self.settings.lease_s)
+
+    def claim(self) -> str:
+        """'claimed' | 'finished' | 'held' | 'cancelled' | 'missing' | 'gave_up'."""
+        now = utcnow()
+        with self.Session() as s:
+            res = s.execute(
+                update(Job)
+                .where(Job.id == self.job_id, Job.status.in_(("queued", "running")),
+                       Job.cancel_requested == False,  # noqa: E712
+                       (Job.lease_owner.is_(None)) | (Job.lease_expires < now))
+                .values(status="running", lease_owner=self.worker_id, lease_expires=self._lease_until(),
+                        attempts=Job.attempts + 1, stage="starting", error=None)
+            )
+            s.commit()
+            job = s.get(Job, self.job_id)
+            if job is None:
+                return "missing"
+            if res.rowcount != 1:
+                if job.status in ("succeeded", "failed", "cancelled"):
+                    return "finished"
+                if job.cancel_requested and (job.lease_owner is None or job.lease_expires < now):
+                    s.execute(update(Job).where(Job.id == self.job_id, Job.status.in_(("queued", "running")))
+                              .values(status="cancelled", finished_at=now, stage="cancelled",
+                                      lease_owner=None, lease_expires=None))
+                    s.commit()
+                    return "cancelled"
+                return "held"
+            log_entry = {"worker": self.worker_id, "claimed_at": now.isoformat() + "Z", "first_step": None}
+            values: dict[str, Any] = {"attempt_log": list(job.attempt_log or []) + [log_entry]}
+            if job.started_at is None:
+                values["started_at"] = now
+            if job.attempts > self.settings.max_deliveries:
+                values.update(status="failed", finished_at=now, lease_owner=None, lease_expires=None,
+                              stage="failed", completions=Job.completions + 1,
+                              error=(f"the job was interrupted {job.attempts - 1} times (its worker crashed "
+                                     f"or was killed); giving up after NEPF_MAX_DELIVERIES="
+                                     f"{self.settings.max_deliveries}"))
+            s.execute(update(Job).where(Job.id == self.job_id, Job.lease_owner == self.worker_id).values(**values))
+            s.commit()
+            return "gave_up" if "finished_at" in values else "claimed"
+
+    def _heartbeat_once(self) -> None:
+        with self._lock:
+            prog = self._progress if self._progress_dirty else None
+            self._progress_dirty = False
+            first = self._first_step if not self._first_step_written else None
+        values: dict[str, Any] = {"lease_expires": self._lease_until()}
+        if prog is not None:
+            for k in ("step", "total", "fraction", "stage", "eta_s", "wall_s"):
+                if k in prog:
+                    values[k] = prog[k]
+        decisions = self._read_decisions()
+        if decisions is not None:
+            values["decisions"] = decisions
+        with self.Session() as s:
+            res = s.execute(update(Job).where(Job.id == self.job_id, Job.lease_owner == self.worker_id,
+                                              Job.status == "running").values(**values))
+            if res.rowcount != 1:
+                s.rollback()
+                self._lease_lost = True
+                return
+            if first is not None:
+                job = s.get(Job, self.job_id)
+                logs = list(job.attempt_log or [])
+                if logs and logs[-1].get("worker") == self.worker_id:
+                    logs[-1] = {**logs[-1], "first_step": first}
+                    s.execute(update(Job).where(Job.id == self.job_id).values(attempt_log=logs))
+                self._first_step_written = True
+            self._cancel = bool(s.execute(select(Job.cancel_requested).where(Job.id == self.job_id)).scalar())
+            s.commit()
+
+    def _read_decisions(self) -> Optional[list]:
+        path = self.run_dir / "report.json"
+        try:
+            m = path.stat().st_mtime
+        except FileNotFoundError:
+            return None
+        if m == self._report_mtime:
+            return None
+        try:
+            rep = json.loads(path.read_text())
+        except (json.JSONDecodeError, OSError, UnicodeDecodeError):
+            return None
+        self._report_mtime = m
+        dec = rep.get("decisions") if isinstance(rep, dict) else rep
+        return dec if isinstance(dec, list) else None
+
+    def _heartbeat_loop(self) -> None:
+        while not self._stop_hb.wait(self.settings.heartbeat_s):
+            try:
+                self._heartbeat_once()
+            except Exception as exc:  # noqa: BLE001 - DB hiccup: try again next beat
+                log.warning("heartbeat failed: %s", exc)
+
+    # ------------------------------------------------------------------ callbacks
+    def on_progress(self, info: dict) -> None:
+        with self._lock:
+            self._progress = dict(info)
+            self._progress_dirty = True
+            # the first training step this attempt reports (1 on a fresh start, > 1 after a resume)
+            if self._first_step is None and int(info.get("step") or 0) >= 1:
+                self._first_step = int(info["step"])
+
+    def should_stop(self) -> bool:
+        if self._lease_lost:
+            # another worker owns the job now: leave at once, without exporting into its run folder
+            raise LeaseLost(f"job {self.job_id}: lease lost to another worker")
+        return self._cancel
+
+    # ------------------------------------------------------------------ main
+    @property
+    def job_dir(self) -> Path:
+        return self.settings.jobs_path / self.job_id
+
+    @property
+    def run_dir(self) -> Path:
+        return self.job_dir / "run"
+
+    def run(self) -> str:
+        outcome = self.claim()
+        if outcome != "claimed":
+            log.info("job %s: %s, not running it", self.job_id, outcome)
+            return outcome
+        with self.Session() as s:
+            job = s.get(Job, self.job_id)
+            cfg = dict(job.config or {})
+        hb = threading.Thread(target=self._heartbeat_loop, name=f"hb-{self.job_id[:8]}", daemon=True)
+        hb.start()
+        status, error, result = "failed", None, None
+        try:
+            from nepf_core.callbacks import FitCallbacks  # torch-free module
+
+            fn = self._run_job or resolve_run_job(self.settings.run_job)
+            kwargs: dict[str, Any] = dict(preset=cfg.get("preset") or self.settings.default_preset,
+                                          iters=cfg.get("iters"), time_budget_s=cfg.get("time_budget_s"),
+                                          device=self.settings.device,
+                                          callbacks=FitCallbacks(on_progress=self.on_progress,
+                                                                 should_stop=self.should_stop),
+                                          resume=True)
+            params = inspect.signature(fn).parameters
+            if self.settings.checkpoint_every is not None:
+                if "checkpoint_every" in params:
+                    kwargs["checkpoint_every"] = self.settings.checkpoint_every
+                elif "overrides" in params:
+                    kwargs["overrides"] = {"train.checkpoint_every": self.settings.checkpoint_every}
+            for name in ("texture_size", "mesh_resolution", "max_faces"):
+                value = getattr(self.settings, f"export_{name}")
+                if value is not None and name in params:
+                    kwargs[name] = value
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            result = fn(str(self.job_dir / "dataset"), str(self.run_dir), **kwargs)
+            status = (result or {}).get("status", "succeeded")
+            if status not in ("succeeded", "cancelled", "failed"):
+                status = "succeeded"
+        except LeaseLost as exc:
+            log.warning("%s; stopping without recording a result", exc)
+            self._stop_hb.set()
+            hb.join(timeout=10)
+            return "lease_lost"
+        except Exception as exc:  # noqa: BLE001 - every failure becomes a failed job with a message
+            log.error("job %s failed: %s", self.job_id, "".join(traceback.format_exception(exc))[-4000:])
+            status, error = "failed", human_error(exc)
+        finally:
+            self._stop_hb.set()
+            hb.join(timeout=10)
+            _release_device_memory()
+        try:
+            self._heartbeat_once()   # last progress/decisions
+        except Exception:  # noqa: BLE001
+            pass
+        return self.finish(status, error, result)
+
+    def finish(self, status: str, error: Optional[str], result: Optional[dict]) -> str:
+        now = utcnow()
+        values: dict[str, Any] = dict(status=status, finished_at=now, error=error, lease_owner=None,
+                                      lease_expires=None, completions=Job.completions + 1,
+                                      stage=status)
+        if result:
+            values["result"] = _jsonable({k: v for k, v in result.items() if k != "report"})
+            rep = result.get("report")
+            if isinstance(rep, dict) and isinstance(rep.get("decisions"), list) and rep["decisions"]:
+                values["decisions"] = _jsonable(rep["decisions"])
+            for k in ("step", "total"):
+                if isinstance(result.get(k), int):
+                    values[k] = result[k]
+            if status == "succeeded":
+                values["fraction"] = 1.0
+                values["eta_s"] = 0.0
+            if isinstance(result.get("wall_s"), (int, float)):
+                values["wall_s"] = float(result["wall_s"])
+        with self.Session() as s:
+            res = s.execute(update(Job).where(Job.id == self.job_id, Job.lease_owner == self.worker_id,
+                                              Job.status == "running").values(**values))
+            s.commit()
+        if res.rowcount != 1:
+            log.warning("job %s: lease lost before completion; result not recorded", self.job_id)
+            return "lease_lost"
+        log.info("job %s %s", self.job_id, status)
+        return status
+
+
+def _release_device_memory() -> None:
+    """The worker process outlives the job: hand cached GPU memory back between jobs."""
+    import gc
+    import sys
+
+    gc.collect()
+    torch = sys.modules.get("torch")
+    try:
+        if torch is not None and torch.cuda.is_available():
+            torch.cuda.empty_cache()
+    except Exception:  # noqa: BLE001
+        pass
+
+
+def _jsonable(x):
+    return json.loads(json.dumps(x, default=str))
