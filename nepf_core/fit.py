@@ -31,7 +31,7 @@ from nepf_core.data.scene import Scene
 from nepf_core.evaluate import albedo_psnr_aligned, psnr, render_view, srgb_np
 from nepf_core.losses import compute_losses, srgb_encode
 from nepf_core.model import ModelFieldQuery, NePFModel
-from nepf_core.rays import PixelSampler
+from nepf_core.rays import PixelSampler, unlit_threshold
 from nepf_core.render.renderer import render_rays
 
 
@@ -230,6 +230,16 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
         optimizer = torch.optim.Adam(_param_groups(model, cfg), betas=(0.9, 0.99), eps=1e-15)
     gen = torch.Generator().manual_seed(tc.seed)
     sampler = PixelSampler(scene, dev)
+    unlit_thr = (unlit_threshold(scene.images, scene.masks, cfg.render.unlit_rel_threshold)
+                 if cfg.render.unlit_albedo_stopgrad else None)
+    if unlit_thr is not None:
+        peak = scene.images.max(-1)
+        fg = peak[scene.masks > 0.5] if scene.masks is not None else peak.reshape(-1)
+        frac = float((fg < unlit_thr).mean()) if fg.size else 0.0
+        adapt.record("unlit_albedo_stopgrad", {"threshold_linear": unlit_thr, "unlit_fraction": round(frac, 4)},
+                     f"{100 * frac:.1f}% of the {'foreground ' if scene.masks is not None else ''}training pixels "
+                     f"are unlit (max channel < {unlit_thr:.2e}, {cfg.render.unlit_rel_threshold} of the 99th "
+                     "percentile): their colour error trains light and geometry, not the albedo")
     if model.occupancy is not None:
         adapt.init_occupancy(model, scene)
 
@@ -328,6 +338,8 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
                 adapt.update_occupancy(model, step)
 
             rays = sampler.sample(batch, generator=gen)
+            if unlit_thr is not None:
+                rays.unlit = rays.rgb.amax(-1) < unlit_thr
             need_extras = adapt.wants_specular_stats(step)
             cfg.render.amp_heads = bool(tc.amp and dev.type == "cuda")
             out = render_rays(model, rays, cfg.render, train=True, cos_anneal=anneal, generator=gen,

@@ -9,6 +9,7 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_eik   = w_eik * mean | |grad f| - 1 |
     L_hess  = w_hess * mean sum_i |H_ii f|
     L_light = w_light * (l3 |var x - var I| + l4 |var n - var l| + l5 |var x - var l|)
+    L_asm   = w_albedo_smooth * mean | c(x*) - c(x* + eps) |   (albedo smoothness prior, off in paper)
     L_mask  = w_mask * BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)
 
 With masks, colour terms average over foreground rays only (NeuS); ``L_surf`` and
@@ -49,6 +50,10 @@ class LossConfig:
     lambda3: float = 1.0
     lambda4: float = 1.0
     lambda5: float = 0.1
+    w_albedo_smooth: float = 0.0
+    """Albedo smoothness prior at the max-weight points (needs ``RenderConfig.albedo_smooth_sigma
+    > 0``); not in the paper. Unlit regions carry no albedo information, so without a prior
+    their albedo is whatever the network extrapolates; this lets neighbouring lit albedo fill it."""
     w_mask: float = 0.1
     """Mask BCE weight (NeuS's value); only applied when the scene has masks."""
     color_space: str = "srgb"
@@ -114,8 +119,15 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool) -> d
                                               s["intensity"][keep], cfg.lambda3, cfg.lambda4, cfg.lambda5)
     else:
         L["loss_light"] = zero
+    if cfg.w_albedo_smooth > 0 and "albedo_jitter" in out.surf:
+        keep = surf_rays > 0.5
+        diff = (out.surf["albedo"] - out.surf["albedo_jitter"]).abs().mean(-1)
+        L["loss_albedo_smooth"] = (diff * keep).sum() / keep.sum().clamp_min(1.0)
+    else:
+        L["loss_albedo_smooth"] = zero
     L["loss_mask"] = mask_bce(out.weight_sum, rays.mask) if (use_mask and rays.mask is not None and cfg.w_mask > 0) else zero
     L["loss"] = (cfg.w_r * L["loss_r"] + cfg.lambda1_surf * L["loss_surf"] + cfg.lambda2_vol * L["loss_vol"]
                  + cfg.w_eikonal * L["loss_eik"] + cfg.w_hessian * L["loss_hess"]
-                 + cfg.w_light * L["loss_light"] + cfg.w_mask * L["loss_mask"])
+                 + cfg.w_light * L["loss_light"] + cfg.w_mask * L["loss_mask"]
+                 + cfg.w_albedo_smooth * L["loss_albedo_smooth"])
     return L

@@ -32,6 +32,8 @@ class RayBatch:
     rgb: Tensor | None = None
     mask: Tensor | None = None
     view: Tensor | None = None
+    unlit: Tensor | None = None
+    """``[R]`` bool, training only: the target pixel is unlit (see ``unlit_rays``)."""
 
     def __len__(self) -> int:
         return int(self.origins.shape[0])
@@ -47,6 +49,18 @@ class RayBatch:
                         None if self.rgb is None else self.rgb[idx],
                         None if self.mask is None else self.mask[idx],
                         None if self.view is None else self.view[idx])
+
+
+def unlit_threshold(images: np.ndarray, masks: np.ndarray | None, rel: float) -> float:
+    """Linear value under which a pixel counts as unlit: ``rel * q99(max_c I)`` over the
+    foreground (every pixel without masks). Relative, so a uniformly dark capture (8-bit
+    values < 8) still has lit pixels. ``images [N, H, W, 3]`` linear, ``masks [N, H, W]``."""
+    peak = images.max(-1)
+    vals = peak[masks > 0.5] if masks is not None else peak.reshape(-1)
+    if vals.size == 0:
+        return 0.0
+    step = max(1, vals.size // 2_000_000)  # a subsample is plenty for a quantile
+    return float(rel * np.quantile(vals[::step], 0.99))
 
 
 def rays_from_pixels(K_inv: Tensor, c2w: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:

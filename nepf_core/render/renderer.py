@@ -57,6 +57,20 @@ class RenderConfig:
     """Use the Lambertian diffuse (paper ablation) instead of Disney + retro-reflection."""
     specular: bool = True
     """Evaluate the GGX specular lobe (adaptivity can switch it off)."""
+    unlit_albedo_stopgrad: bool = False
+    """Training only: on rays whose target colour is unlit (``RayBatch.unlit``, set by fit()
+    from the data), the colour error of L_vol / L_surf does not reach the albedo; only the
+    photon field (direction, intensity) and geometry may explain the darkness. A pixel that
+    received no light carries no information on the albedo, and letting it drive the albedo
+    to 0 is what made the recovered albedo black in shadows (docs/FAST.md, "Albedo in
+    unlit regions")."""
+    albedo_smooth_sigma: float = 0.0
+    """Training only, > 0: also query the material network at ``x* + N(0, sigma^2 I)`` next
+    to each max-weight point (``surf["albedo_jitter"]``) for the albedo smoothness prior
+    (``LossConfig.w_albedo_smooth``). Normalised-frame units."""
+    unlit_rel_threshold: float = 0.01
+    """A target pixel is unlit when ``max_c L_gt < unlit_rel_threshold * q99(foreground)``
+    (:func:`nepf_core.rays.unlit_threshold`)."""
     amp_heads: bool = False
     """bf16 autocast for the radiance / photon / material networks only (CUDA). The SDF, the
     NeuS density and the BSDF stay in fp32: a bf16 SDF near the surface is off by ~1e-3,
@@ -190,7 +204,11 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         albedo, rough, metal = model.material(xs, ns, fs)
     rad, light_dir, intensity = rad.float(), light_dir.float(), intensity.float()
     albedo, rough, metal = albedo.float(), rough.float(), metal.float()
-    pbr = bsdf.shade(ns, light_dir, -vs, albedo, rough[:, None], metal[:, None], intensity[:, None],
+    albedo_shade = albedo
+    if train and cfg.unlit_albedo_stopgrad and rays.unlit is not None:
+        unlit_sample = rays.unlit[sel_idx // S]
+        albedo_shade = torch.where(unlit_sample[:, None], albedo.detach(), albedo)
+    pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None], intensity[:, None],
                      lambertian=cfg.lambertian, specular=cfg.specular)
 
     P = pts.shape[0]
@@ -213,6 +231,13 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         "x": pts[flat_max], "normal": normals[flat_max], "light_dir": light_dir[k],
         "intensity": intensity[k], "albedo": albedo[k], "roughness": rough[k], "metallic": metal[k],
     }
+    if train and cfg.albedo_smooth_sigma > 0:
+        xj = surf["x"].detach() + cfg.albedo_smooth_sigma * torch.randn(surf["x"].shape, device=o.device,
+                                                                        dtype=surf["x"].dtype)
+        _, fj = model.sdf(xj)
+        with torch.autocast(device_type=xj.device.type, dtype=torch.bfloat16,
+                            enabled=cfg.amp_heads and xj.device.type == "cuda"):
+            surf["albedo_jitter"] = model.material(xj, surf["normal"].detach(), fj)[0].float()
     if need_surface_extras:
         with torch.no_grad():
             diffuse_only = bsdf.shade(ns[k], light_dir[k], -vs[k], albedo[k], rough[k][:, None], metal[k][:, None],
