@@ -232,7 +232,8 @@ def machine_info(threads: int | None) -> dict:
     return info
 
 
-def _parse_budget_for(items: list[str]) -> dict[str, float]:
+def _parse_budget_for(items: list[str], flag: str = "--budget-for") -> dict[str, float]:
+    """``["paper=1800,fast=600"]`` -> ``{"paper": 1800.0, "fast": 600.0}``."""
     out = {}
     for item in items:
         for part in item.split(","):
@@ -241,7 +242,7 @@ def _parse_budget_for(items: list[str]) -> dict[str, float]:
                 continue
             name, sep, val = part.partition("=")
             if not sep:
-                raise SystemExit(f"--budget-for expects CONFIG=SECONDS, got {part!r}")
+                raise SystemExit(f"{flag} expects CONFIG=SECONDS, got {part!r}")
             out[name.strip()] = float(val)
     return out
 
@@ -279,6 +280,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--budget-for", action="append", default=[], metavar="CONFIG=S",
                    help="per-config budget, e.g. paper=1800 (repeatable or comma-separated)")
     p.add_argument("--eval-every", type=float, default=60.0, help="held-out evaluation period, training seconds")
+    p.add_argument("--eval-every-for", action="append", default=[], metavar="CONFIG=S",
+                   help="per-config evaluation period, e.g. paper=180 (a paper evaluation costs minutes)")
     p.add_argument("--eval-stride", type=int, default=1, help="render held-out views every N-th pixel")
     p.add_argument("--repeats", type=int, default=1, help="runs per configuration; tables report medians")
     p.add_argument("--threads", type=int, default=None, help="torch threads in each run (and OMP_NUM_THREADS)")
@@ -313,6 +316,7 @@ def plan_runs(args) -> list[dict]:
         if c not in PRESETS:
             raise SystemExit(f"unknown config {c!r}: choose from {', '.join(PRESETS)}")
     budget_for = _parse_budget_for(args.budget_for)
+    eval_every_for = _parse_budget_for(args.eval_every_for, "--eval-every-for")
     extra = _parse_overrides(args.override)
     scenes = args.scenes
     if scenes is None:
@@ -342,7 +346,7 @@ def plan_runs(args) -> list[dict]:
         for c in configs:
             for v in variants:
                 for r in range(max(1, args.repeats)):
-                    ov = {"train.eval_every_s": float(args.eval_every), "train.eval_stride": int(args.eval_stride)}
+                    ov = {"train.eval_every_s": float(eval_every_for.get(c, args.eval_every)), "train.eval_stride": int(args.eval_stride)}
                     ov.update(extra)
                     ov.update(VARIANTS[v])
                     rid = f"{t['scene']}__{c}__{v}__r{r}"

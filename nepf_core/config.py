@@ -122,7 +122,9 @@ def tiny() -> NePFConfig:
 
 
 def fast() -> NePFConfig:
-    """Grid SDF + small heads + occupancy-guided samples + finite-difference normals."""
+    """Grid SDF + small heads + occupancy-guided samples + finite-difference normals, and two
+    albedo priors the paper does not have: unlit pixels do not train the albedo, and a small
+    albedo smoothness term (docs/FAST.md, "Albedo in unlit regions")."""
     head = HeadConfig(width=64, depth=2, activation="relu", n_freqs_v=4)
     return NePFConfig(
         name="fast",
@@ -131,8 +133,8 @@ def fast() -> NePFConfig:
                           material=HeadConfig(width=64, depth=2), occupancy_resolution=64),
         render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1, sampler="occupancy",
                             normals="fd", alpha_mode="sample", head_weight_threshold=1e-4,
-                            eikonal_fraction=0.1),
-        loss=LossConfig(w_hessian=0.0),
+                            eikonal_fraction=0.1, unlit_albedo_stopgrad=True, albedo_smooth_sigma=0.02),
+        loss=LossConfig(w_hessian=0.0, w_albedo_smooth=2e-4),
         train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,
                           anneal_end=2000, log_every=20, sync_every=500, checkpoint_every=1000,
                           eval_every_s=60.0, eval_stride=1, target_samples=0),

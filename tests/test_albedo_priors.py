@@ -1,0 +1,99 @@
+"""The two albedo priors of the fast preset (docs/FAST.md, "Albedo in unlit regions").
+
+* unlit pixels carry no albedo information: on rays flagged ``unlit`` the colour error of
+  L_vol / L_surf must not reach the albedo, while it still reaches roughness, metallic and
+  the photon field; on lit rays it reaches the albedo;
+* the albedo smoothness prior ``mean |c(x*) - c(x* + eps)|`` over surface rays.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from nepf_core.config import tiny
+from nepf_core.losses import LossConfig, compute_losses
+from nepf_core.model import NePFModel
+from nepf_core.rays import RayBatch, unlit_threshold
+from nepf_core.render.renderer import RenderOutput, render_rays
+
+
+def test_unlit_threshold_is_relative_to_the_foreground_99th_percentile():
+    # 100 foreground pixels with max channel 0.00, 0.01, ..., 0.99; background pixels at 5.0
+    vals = np.arange(100) / 100.0
+    img = np.zeros((1, 10, 20, 3))
+    img[0, :, :10, 1] = vals.reshape(10, 10)      # the max channel is G
+    img[0, :, 10:, :] = 5.0
+    mask = np.zeros((1, 10, 20))
+    mask[0, :, :10] = 1.0
+    q99 = np.quantile(vals, 0.99)                 # 0.9801 (linear interpolation between 0.98 and 0.99)
+    assert abs(q99 - 0.9801) < 1e-12
+    assert abs(unlit_threshold(img, mask, 0.01) - 0.01 * 0.9801) < 1e-12
+    # without masks every pixel counts: 99th percentile of 100 values in [0, 0.99] and 100 fives = 5
+    assert abs(unlit_threshold(img, None, 0.01) - 0.05) < 1e-12
+    # a uniformly dark capture (values / 100) gets a threshold 100x lower, not zero lit pixels
+    assert abs(unlit_threshold(img / 100.0, mask, 0.01) - 0.01 * 0.009801) < 1e-12
+
+
+def _model_and_rays(unlit: bool):
+    torch.manual_seed(0)
+    cfg = tiny()
+    cfg.render.unlit_albedo_stopgrad = True
+    model = NePFModel(cfg.model)
+    R = 64
+    g = torch.Generator().manual_seed(1)
+    o = torch.tensor([0.0, 0.0, -2.5]).expand(R, 3) + 0.05 * torch.randn(R, 3, generator=g)
+    d = torch.nn.functional.normalize(torch.tensor([0.0, 0.0, 1.0]) + 0.05 * torch.randn(R, 3, generator=g), dim=-1)
+    rays = RayBatch(o, d, rgb=torch.full((R, 3), 0.5), mask=torch.ones(R),
+                    unlit=torch.full((R,), unlit, dtype=torch.bool))
+    return cfg, model, rays
+
+
+def _albedo_and_roughness_grads(unlit: bool):
+    cfg, model, rays = _model_and_rays(unlit)
+    out = render_rays(model, rays, cfg.render, train=True)
+    assert float(out.weight_sum.detach().mean()) > 0.5   # the rays hit the init sphere
+    lc = LossConfig(w_r=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0, w_mask=0.0)
+    loss = compute_losses(out, rays, lc, use_mask=True)["loss"]
+    loss.backward()
+    bias_grad = model.material.mlp.layers[-1].bias.grad
+    return bias_grad[:3].abs().sum().item(), bias_grad[3:].abs().sum().item(), \
+        sum(p.grad.abs().sum().item() for p in model.photon.parameters() if p.grad is not None)
+
+
+def test_unlit_rays_do_not_train_the_albedo_but_still_train_the_rest():
+    albedo_g, rm_g, photon_g = _albedo_and_roughness_grads(unlit=True)
+    assert albedo_g == 0.0
+    assert rm_g > 0.0 and photon_g > 0.0
+
+
+def test_lit_rays_train_the_albedo():
+    albedo_g, rm_g, photon_g = _albedo_and_roughness_grads(unlit=False)
+    assert albedo_g > 0.0 and rm_g > 0.0 and photon_g > 0.0
+
+
+def test_albedo_smoothness_loss_hand_value_and_renderer_output():
+    R = 4
+    z3, z1 = torch.zeros(R, 3), torch.zeros(R)
+    albedo = torch.tensor([[0.2, 0.4, 0.6], [0.5, 0.5, 0.5], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
+    jitter = torch.tensor([[0.3, 0.4, 0.3], [0.5, 0.5, 0.5], [0.9, 0.9, 0.9], [0.0, 0.0, 0.0]])
+    out = RenderOutput(rgb_r=z3, rgb_vol=z3, rgb_surf=z3, weight_sum=torch.ones(R), w_max=z1, depth=z1,
+                       eikonal=torch.zeros(0), hessian=torch.zeros(0),
+                       surf={"albedo": albedo, "albedo_jitter": jitter, "x": z3, "normal": z3,
+                             "light_dir": z3, "intensity": z1})
+    mask = torch.tensor([1.0, 1.0, 1.0, 0.0])    # the last ray is background: not counted
+    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=z3, mask=mask)
+    lc = LossConfig(w_r=0.0, lambda1_surf=0.0, lambda2_vol=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0,
+                    w_mask=0.0, w_albedo_smooth=2.0)
+    L = compute_losses(out, rays, lc, use_mask=True)
+    # per-ray mean |diff|: (0.1 + 0 + 0.3) / 3, 0, 0.9 -> mean over the 3 foreground rays
+    expected = ((0.4 / 3) + 0.0 + 0.9) / 3
+    assert abs(L["loss_albedo_smooth"].item() - expected) < 1e-6
+    assert abs(L["loss"].item() - 2.0 * expected) < 1e-6
+
+    cfg, model, rays = _model_and_rays(unlit=False)
+    cfg.render.albedo_smooth_sigma = 0.02
+    out = render_rays(model, rays, cfg.render, train=True)
+    assert out.surf["albedo_jitter"].shape == (len(rays), 3)
+    assert not torch.equal(out.surf["albedo_jitter"], out.surf["albedo"])
+    assert "albedo_jitter" not in render_rays(model, rays, cfg.render, train=False).surf
