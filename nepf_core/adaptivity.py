@@ -13,7 +13,10 @@ Rules (each decision is logged with its step and reason):
   brightest 5% of pixels exceeds ``highlight_ratio`` times the median residual.
 * **Hessian regulariser.** Only while the eikonal residual (EMA) is above ``eik_thr``.
 * **Iterations.** When the user did not fix the iteration count, stop when the held-out
-  PSNR has not improved by ``min_gain_db`` over ``plateau_patience`` evaluations.
+  PSNR has not improved by ``min_gain_db`` over ``plateau_patience`` evaluations **and**
+  over at least ``plateau_min_frac`` (default 1/2) of the training time so far
+  (``t - t_best >= plateau_min_frac * t``), so frequent evaluations cannot stop a run that
+  still improves slowly.
 * **Empty space.** The occupancy grid skips it; we report the fraction of cells culled
   (``occupied_fraction``) and the fraction of samples saved (``samples_saved_fraction``:
   the running mean over training steps of the batch-mean share of each ray's ``[near, far]``
@@ -54,6 +57,7 @@ class Adaptivity:
         self._eik_ema = None
         self._best_psnr = -math.inf
         self._evals_since_best = 0
+        self._best_wall = None
         self._hess_weight = cfg.loss.w_hessian
         self._stats: dict = {}
         self._occ_frac = None
@@ -67,7 +71,7 @@ class Adaptivity:
     def state(self) -> dict:
         return {"decisions": self.decisions, "specular": self.cfg.render.specular, "streak": self._diffuse_streak,
                 "eik_ema": self._eik_ema, "best": self._best_psnr if math.isfinite(self._best_psnr) else None,
-                "since_best": self._evals_since_best, "w_hessian": self.cfg.loss.w_hessian,
+                "since_best": self._evals_since_best, "best_wall": self._best_wall, "w_hessian": self.cfg.loss.w_hessian,
                 "skip_sum": self._skip_sum, "skip_n": self._skip_n}
 
     def load_state(self, s: dict) -> None:
@@ -79,6 +83,7 @@ class Adaptivity:
         self._eik_ema = s.get("eik_ema")
         self._best_psnr = s.get("best") if s.get("best") is not None else -math.inf
         self._evals_since_best = s.get("since_best", 0)
+        self._best_wall = s.get("best_wall")
         self.cfg.loss.w_hessian = s.get("w_hessian", self.cfg.loss.w_hessian)
         self._skip_sum, self._skip_n = s.get("skip_sum", 0.0), s.get("skip_n", 0)
 
@@ -182,16 +187,23 @@ class Adaptivity:
         v = rec.get("test_psnr")
         if v is None or not math.isfinite(v):
             return
+        wall = rec.get("wall_s")
         if v > self._best_psnr + self.min_gain_db:
             self._best_psnr = v
+            self._best_wall = wall
             self._evals_since_best = 0
         else:
             self._evals_since_best += 1
+        long_enough = True   # the plateau must also span a share of the training time so far
+        if wall is not None and self._best_wall is not None:
+            long_enough = (wall - self._best_wall) >= self.cfg.train.plateau_min_frac * wall
         if (self.enabled and not self.iters_fixed and self._evals_since_best >= self.cfg.train.plateau_patience
-                and not self.stop_requested):
+                and long_enough and not self.stop_requested):
             self.stop_requested = True
+            span = "" if wall is None or self._best_wall is None else \
+                f" and {wall - self._best_wall:.0f} s of {wall:.0f} s of training"
             self.record("early_stop", True, f"held-out PSNR plateaued: no gain > {self.min_gain_db} dB over "
-                        f"{self.cfg.train.plateau_patience} evaluations (best {self._best_psnr:.2f} dB)", step)
+                        f"{self._evals_since_best} evaluations{span} (best {self._best_psnr:.2f} dB)", step)
 
     def write_report(self, path: Path, *, step: int, status: str, nonfinite: int) -> dict:
         rep = {"status": status, "step": step, "nonfinite_steps": nonfinite, "decisions": self.decisions,

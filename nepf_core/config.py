@@ -65,7 +65,10 @@ class TrainConfig:
     """Let fit() leave out what the scene does not need (see report.json)."""
     plateau_patience: int = 3
     """Early stop after this many held-out evaluations without 0.1 dB gain (only when the
-    iteration count was not fixed by the user)."""
+    iteration count was not fixed by the user)..."""
+    plateau_min_frac: float = 0.5
+    """...and only when those evaluations also span this share of the training time so far
+    (``t - t_best >= plateau_min_frac * t``)."""
 
 
 @dataclass

@@ -265,3 +265,25 @@ def test_fast_fit_with_masks_carves_the_visual_hull_and_reports_samples_saved(tm
     assert 0.0 < hull.float().mean() < 1.0
     assert not (occ & ~hull).any()
     assert math.isfinite(rep["samples_saved_fraction"])
+
+
+def test_plateau_must_span_half_the_training_time():
+    """With frequent evaluations, 3 without gain are not enough: the plateau must also last
+    at least half of the training time so far (best at 80 s -> no stop before 160 s)."""
+    a, cfg = _adapt(iters_fixed=False)
+    assert cfg.train.plateau_min_frac == 0.5
+    a.on_test_eval(1, {"test_psnr": 20.0, "wall_s": 60.0})
+    a.on_test_eval(2, {"test_psnr": 23.9, "wall_s": 80.0})      # best
+    for step, t in ((3, 100.0), (4, 120.0), (5, 140.0)):
+        a.on_test_eval(step, {"test_psnr": 23.95, "wall_s": t})  # < 0.1 dB gain
+    assert a._evals_since_best == 3 and not a.stop_requested     # 60 s < 140 / 2
+    a.on_test_eval(6, {"test_psnr": 23.9, "wall_s": 159.0})
+    assert not a.stop_requested                                  # 79 s < 79.5 s
+    a.on_test_eval(7, {"test_psnr": 23.9, "wall_s": 160.0})
+    assert a.stop_requested                                      # 80 s >= 80 s
+    (found,) = _names(a, "early_stop")
+    assert found["step"] == 7 and "80 s of 160 s" in found["reason"] and "5 evaluations" in found["reason"]
+    # the counters survive a checkpoint round trip
+    b, _ = _adapt(iters_fixed=False)
+    b.load_state(a.state())
+    assert b._best_wall == 80.0 and b._evals_since_best == 5
