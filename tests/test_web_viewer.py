@@ -258,6 +258,16 @@ def test_job_page_charts_3d_channels_light_lightfield_download(browser, backend,
     else:
         assert page.locator("#chart-error .chart-empty").is_visible()
 
+    # --- adaptivity decisions: one table row per decision the API reports, with its reason
+    with backend.client() as c:
+        decisions = c.get(f"/jobs/{job_id}").json()["decisions"]
+    assert decisions, "the fixture job reported no adaptivity decisions"
+    rows = page.locator("#decisions-table tbody tr")
+    assert rows.count() == len(decisions)
+    assert [rows.nth(i).get_attribute("data-decision") for i in range(rows.count())] == \
+        [str(d["decision"]) for d in decisions]
+    assert decisions[0]["reason"] in rows.nth(0).inner_text()
+
     # --- 3D view: the asset covers the centre of the canvas
     page.wait_for_timeout(300)
     pbr = canvas_png(page)

@@ -74,6 +74,10 @@ export function renderJob(root, id) {
   const actions = h('div', { class: 'job-actions' }, cancelBtn, deleteBtn);
   const meta = h('dl', { class: 'meta small', id: 'job-meta' });
 
+  // ---------------------------------------------------------------- adaptivity decisions
+  const decisionsHost = h('div', { id: 'decisions' }, h('p', { class: 'muted' }, 'Reported once training starts.'));
+  let decisionsKey = '';
+
   // ---------------------------------------------------------------- charts
   const chartsHost = h('div', { class: 'charts', id: 'charts' });
 
@@ -90,6 +94,9 @@ export function renderJob(root, id) {
     h('section', { class: 'panel', 'aria-labelledby': 'charts-title' },
       h('h2', { id: 'charts-title' }, 'Training'),
       chartsHost),
+    h('section', { class: 'panel', 'aria-labelledby': 'decisions-title' },
+      h('h2', { id: 'decisions-title' }, 'What this run left out, and why'),
+      decisionsHost),
     h('section', { class: 'panel', 'aria-labelledby': 'asset-title' },
       h('h2', { id: 'asset-title' }, 'Recovered asset'),
       h('div', { class: 'viewer-layout' },
@@ -133,6 +140,8 @@ export function renderJob(root, id) {
       noteBox.hidden = false;
     } else noteBox.hidden = true;
 
+    renderDecisions(job.raw?.decisions);
+
     const active = !isFinal(job.status);
     const cancelling = !!job.raw?.cancel_requested && active;
     cancelBtn.disabled = !active || cancelling;
@@ -149,6 +158,21 @@ export function renderJob(root, id) {
       api.artifacts(id).then((list) => !stopped && renderDownloads(list?.artifacts || [], !!list?.manifest))
         .catch(() => {});
     }
+  }
+
+  /** The core's adaptivity decisions (report.json, via the API): one row each. */
+  function renderDecisions(decisions) {
+    if (!Array.isArray(decisions) || !decisions.length) return;
+    const key = JSON.stringify(decisions);
+    if (key === decisionsKey) return;
+    decisionsKey = key;
+    const fmtValue = (v) => (v !== null && typeof v === 'object' ? JSON.stringify(v) : String(v));
+    clear(decisionsHost).append(h('table', { class: 'decisions small', id: 'decisions-table' },
+      h('thead', {}, h('tr', {}, h('th', { scope: 'col' }, 'Step'), h('th', { scope: 'col' }, 'Decision'),
+        h('th', { scope: 'col' }, 'Value'), h('th', { scope: 'col' }, 'Reason'))),
+      h('tbody', {}, ...decisions.map((d) => h('tr', { 'data-decision': String(d.decision) },
+        h('td', {}, String(d.step ?? '')), h('td', {}, String(d.decision)),
+        h('td', {}, fmtValue(d.value)), h('td', {}, String(d.reason ?? '')))))));
   }
 
   // ---------------------------------------------------------------- results
