@@ -174,3 +174,17 @@ def test_narrow_band_grid_matches_dense_near_surface():
     near = np.abs(dense) < 3 * h
     np.testing.assert_array_equal(band[near], dense[near])  # exact where marching cubes looks
     assert np.array_equal(np.sign(band), np.sign(dense))  # filled blocks keep the sign
+
+
+def test_export_to_a_relative_run_folder(tmp_path, monkeypatch):
+    """`nepf export runs/x` (a path relative to the working directory) used to join the written
+    paths to the run folder a second time when building the manifest entries."""
+    monkeypatch.chdir(tmp_path)
+    rel = Path("runs") / "x"
+    rel.mkdir(parents=True)
+    entries = export_asset(SphereQuery(), np.eye(4), rel, texture_size=64, max_faces=800, mesh_resolution=24,
+                           previews=False)
+    paths = {e["path"] for e in entries}
+    assert {"mesh.ply", "asset.glb", "textures/base_color.png"} <= paths
+    assert all(not p.startswith("runs/") for p in paths)
+    assert (tmp_path / "runs" / "x" / "manifest.json").is_file()

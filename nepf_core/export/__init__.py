@@ -133,7 +133,7 @@ def export_asset(
     Raises:
         EmptyMeshError: the SDF has no zero crossing in ``bbox``.
     """
-    out_dir = Path(out_dir)
+    out_dir = Path(out_dir).resolve()  # written paths below must not be re-joined to a relative run dir
     out_dir.mkdir(parents=True, exist_ok=True)
     if device is None:
         device = getattr(query, "device", None) or "cpu"
