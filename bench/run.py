@@ -232,7 +232,7 @@ def machine_info(threads: int | None) -> dict:
     return info
 
 
-def _parse_budget_for(items: list[str], flag: str = "--budget-for") -> dict[str, float]:
+def _parse_per_config(items: list[str], flag: str) -> dict[str, float]:
     """``["paper=1800,fast=600"]`` -> ``{"paper": 1800.0, "fast": 600.0}``."""
     out = {}
     for item in items:
@@ -315,8 +315,8 @@ def plan_runs(args) -> list[dict]:
     for c in configs:
         if c not in PRESETS:
             raise SystemExit(f"unknown config {c!r}: choose from {', '.join(PRESETS)}")
-    budget_for = _parse_budget_for(args.budget_for)
-    eval_every_for = _parse_budget_for(args.eval_every_for, "--eval-every-for")
+    budget_for = _parse_per_config(args.budget_for, "--budget-for")
+    eval_every_for = _parse_per_config(args.eval_every_for, "--eval-every-for")
     extra = _parse_overrides(args.override)
     scenes = args.scenes
     if scenes is None:

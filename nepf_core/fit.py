@@ -31,7 +31,7 @@ from nepf_core.data.scene import Scene
 from nepf_core.evaluate import albedo_psnr_aligned, psnr, render_view, srgb_np
 from nepf_core.losses import compute_losses, srgb_encode
 from nepf_core.model import ModelFieldQuery, NePFModel
-from nepf_core.rays import PixelSampler, unlit_threshold
+from nepf_core.rays import PixelSampler, foreground_peaks, unlit_threshold
 from nepf_core.render.renderer import render_rays
 
 
@@ -233,8 +233,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
     unlit_thr = (unlit_threshold(scene.images, scene.masks, cfg.render.unlit_rel_threshold)
                  if cfg.render.unlit_albedo_stopgrad else None)
     if unlit_thr is not None:
-        peak = scene.images.max(-1)
-        fg = peak[scene.masks > 0.5] if scene.masks is not None else peak.reshape(-1)
+        fg = foreground_peaks(scene.images, scene.masks)
         frac = float((fg < unlit_thr).mean()) if fg.size else 0.0
         adapt.record("unlit_albedo_stopgrad", {"threshold_linear": unlit_thr, "unlit_fraction": round(frac, 4)},
                      f"{100 * frac:.1f}% of the {'foreground ' if scene.masks is not None else ''}training pixels "

@@ -33,7 +33,7 @@ class RayBatch:
     mask: Tensor | None = None
     view: Tensor | None = None
     unlit: Tensor | None = None
-    """``[R]`` bool, training only: the target pixel is unlit (see ``unlit_rays``)."""
+    """``[R]`` bool, training only: the target pixel is unlit (see ``unlit_threshold``)."""
 
     def __len__(self) -> int:
         return int(self.origins.shape[0])
@@ -42,21 +42,28 @@ class RayBatch:
         return RayBatch(self.origins[a:b], self.directions[a:b],
                         None if self.rgb is None else self.rgb[a:b],
                         None if self.mask is None else self.mask[a:b],
-                        None if self.view is None else self.view[a:b])
+                        None if self.view is None else self.view[a:b],
+                        None if self.unlit is None else self.unlit[a:b])
 
     def index(self, idx: Tensor) -> "RayBatch":
         return RayBatch(self.origins[idx], self.directions[idx],
                         None if self.rgb is None else self.rgb[idx],
                         None if self.mask is None else self.mask[idx],
-                        None if self.view is None else self.view[idx])
+                        None if self.view is None else self.view[idx],
+                        None if self.unlit is None else self.unlit[idx])
+
+
+def foreground_peaks(images: np.ndarray, masks: np.ndarray | None) -> np.ndarray:
+    """``max_c I`` of every foreground pixel (every pixel without masks): ``[N, H, W, 3] -> [P]``."""
+    peak = images.max(-1)
+    return peak[masks > 0.5] if masks is not None else peak.reshape(-1)
 
 
 def unlit_threshold(images: np.ndarray, masks: np.ndarray | None, rel: float) -> float:
     """Linear value under which a pixel counts as unlit: ``rel * q99(max_c I)`` over the
     foreground (every pixel without masks). Relative, so a uniformly dark capture (8-bit
     values < 8) still has lit pixels. ``images [N, H, W, 3]`` linear, ``masks [N, H, W]``."""
-    peak = images.max(-1)
-    vals = peak[masks > 0.5] if masks is not None else peak.reshape(-1)
+    vals = foreground_peaks(images, masks)
     if vals.size == 0:
         return 0.0
     step = max(1, vals.size // 2_000_000)  # a subsample is plenty for a quantile
