@@ -23,6 +23,19 @@ from nepf_core.callbacks import FitCallbacks
 from nepf_core.config import NePFConfig, preset as make_preset
 
 
+def _coerce(current, value, key: str):
+    """``value`` converted to the type of ``current``; a bool accepts ``true/false/1/0/yes/no``
+    (``bool("False")`` would be True)."""
+    if isinstance(current, bool) and isinstance(value, str):
+        v = value.strip().lower()
+        if v in ("true", "1", "yes", "on"):
+            return True
+        if v in ("false", "0", "no", "off"):
+            return False
+        raise ValueError(f"config field {key!r} is a bool: use true or false, not {value!r}")
+    return type(current)(value)
+
+
 def build_config(preset: str = "fast", iters: int | None = None, overrides: dict | None = None) -> NePFConfig:
     """A preset with the user's iteration count and optional ``{"section.field": value}`` overrides."""
     cfg = make_preset(preset)
@@ -35,7 +48,7 @@ def build_config(preset: str = "fast", iters: int | None = None, overrides: dict
         obj = getattr(cfg, section, None)
         if obj is None or not hasattr(obj, name):
             raise ValueError(f"unknown config field {key!r}")
-        setattr(obj, name, type(getattr(obj, name))(value))
+        setattr(obj, name, _coerce(getattr(obj, name), value, key))
     return cfg
 
 

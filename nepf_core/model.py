@@ -33,6 +33,11 @@ class ModelConfig:
     """Background radiance B(d); switched on by fit() for scenes without masks."""
     occupancy_resolution: int = 0
     """Occupancy grid resolution (0: none)."""
+    light_init_albedo: float = 0.0
+    """> 0: fit() starts the photon intensity at ``I0 = pi * q99 / light_init_albedo`` (q99:
+    99th percentile of the foreground pixels' max channel, linear), so the brightest pixels
+    need an albedo of about ``light_init_albedo`` under head-on light and the albedo sigmoid
+    starts far from saturation (:func:`nepf_core.fit.init_light_to_data`). 0: ``I0 = 3``."""
 
 
 def build_sdf(cfg: ModelConfig) -> nn.Module:

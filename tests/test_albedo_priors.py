@@ -49,8 +49,9 @@ def _model_and_rays(unlit: bool):
     return cfg, model, rays
 
 
-def _albedo_and_roughness_grads(unlit: bool):
+def _albedo_and_roughness_grads(unlit: bool, material_stopgrad: bool = False):
     cfg, model, rays = _model_and_rays(unlit)
+    cfg.render.unlit_material_stopgrad = material_stopgrad
     out = render_rays(model, rays, cfg.render, train=True)
     assert float(out.weight_sum.detach().mean()) > 0.5   # the rays hit the init sphere
     lc = LossConfig(w_r=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0, w_mask=0.0)
@@ -65,6 +66,38 @@ def test_unlit_rays_do_not_train_the_albedo_but_still_train_the_rest():
     albedo_g, rm_g, photon_g = _albedo_and_roughness_grads(unlit=True)
     assert albedo_g == 0.0
     assert rm_g > 0.0 and photon_g > 0.0
+
+
+def test_unlit_material_stopgrad_blocks_roughness_and_metallic_too_but_not_the_light():
+    albedo_g, rm_g, photon_g = _albedo_and_roughness_grads(unlit=True, material_stopgrad=True)
+    assert albedo_g == 0.0 and rm_g == 0.0
+    assert photon_g > 0.0
+    # on lit rays the switch changes nothing: every material output is trained
+    albedo_g, rm_g, photon_g = _albedo_and_roughness_grads(unlit=False, material_stopgrad=True)
+    assert albedo_g > 0.0 and rm_g > 0.0 and photon_g > 0.0
+
+
+def test_light_init_from_data_hand_value():
+    from types import SimpleNamespace
+
+    from nepf_core.fit import init_light_to_data
+    # foreground max channels 0.00 .. 0.99 (q99 = 0.9801, see above); background 5.0 is ignored
+    vals = np.arange(100) / 100.0
+    img = np.zeros((1, 10, 20, 3))
+    img[0, :, :10, 2] = vals.reshape(10, 10)
+    img[0, :, 10:, :] = 5.0
+    mask = np.zeros((1, 10, 20))
+    mask[0, :, :10] = 1.0
+    scene = SimpleNamespace(images=img, masks=mask, n_views=1)
+    model = NePFModel(tiny().model)
+    i0 = init_light_to_data(model, scene, albedo=0.5)
+    # subsampled every 7th value: 0, 0.07, ..., 0.98 -> q99 by linear interpolation
+    sub = vals[::7]
+    expected = np.pi * np.quantile(sub, 0.99) / 0.5
+    assert abs(i0 - expected) < 1e-9 and 5.5 < i0 < 6.3
+    # a zero raw output of the photon network now gives exactly that intensity
+    I = torch.nn.functional.softplus(model.photon.intensity_bias)
+    assert abs(I.item() - expected) < 1e-4 * expected
 
 
 def test_lit_rays_train_the_albedo():

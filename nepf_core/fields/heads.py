@@ -77,6 +77,13 @@ class PhotonField(nn.Module):
         # softplus^-1(init_intensity): start with a plausible light level
         self.register_buffer("intensity_bias", torch.tensor(math.log(math.expm1(init_intensity))))
 
+    def set_init_intensity(self, value: float) -> None:
+        """Shift the intensity so that a zero raw output gives ``I = value`` (> 0):
+        ``bias = softplus^-1(value) = value + log(-expm1(-value))`` (stable for any value > 0)."""
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"initial light intensity must be finite and > 0, got {value}")
+        self.intensity_bias.fill_(value + math.log(-math.expm1(-value)))
+
     def forward(self, x: Tensor, n: Tensor, feature: Tensor) -> tuple[Tensor, Tensor]:
         parts = [positional_encoding(x, self.cfg.n_freqs_x), n] + ([feature] if self.cfg.use_feature else [])
         raw = self.mlp(torch.cat(parts, dim=-1))

@@ -1,0 +1,27 @@
+"""Config overrides (``{"section.field": value}``) used by the bench and the job runner."""
+
+import pytest
+
+from nepf_core.config import fast
+from nepf_core.jobs import build_config
+
+
+def test_bool_overrides_parse_false_as_false():
+    assert fast().render.unlit_albedo_stopgrad is True
+    cfg = build_config("fast", None, {"render.unlit_albedo_stopgrad": "False",
+                                      "render.unlit_material_stopgrad": "true"})
+    assert cfg.render.unlit_albedo_stopgrad is False
+    assert cfg.render.unlit_material_stopgrad is True
+
+
+def test_numeric_overrides_and_iters():
+    cfg = build_config("fast", 7, {"model.light_init_albedo": "0.5", "train.batch_rays": "256"})
+    assert cfg.model.light_init_albedo == 0.5 and cfg.train.batch_rays == 256 and cfg.train.iters == 7
+
+
+@pytest.mark.parametrize("ov,msg", [({"render.specular": "maybe"}, "is a bool"),
+                                    ({"render.nope": "1"}, "unknown config field"),
+                                    ({"nope.x": "1"}, "unknown config field")])
+def test_bad_overrides_name_the_field(ov, msg):
+    with pytest.raises(ValueError, match=msg):
+        build_config("fast", None, ov)
