@@ -107,7 +107,10 @@ class Adaptivity:
 
     def init_occupancy(self, model, scene) -> None:
         from nepf_core.render.visual_hull import visual_hull_cells
-        if scene.has_masks:
+        if scene.has_masks and not self.enabled:
+            self.record("visual_hull", False, "adaptivity disabled: samples may fall outside the mask bounds "
+                        "(everything-on baseline)")
+        elif scene.has_masks:
             hull = visual_hull_cells(scene, model.occupancy.cfg.resolution, device=model.hull.device)
             if hull.any():
                 model.hull.copy_(hull)

@@ -235,7 +235,8 @@ def test_fit_without_masks_uses_background_and_no_mask_loss(tmp_path):
     assert model.background is not None  # the saved config rebuilds the background model
 
 
-def test_fast_fit_with_masks_carves_the_visual_hull_and_reports_samples_saved(tmp_path):
+@pytest.mark.parametrize("adaptive", [True, False])
+def test_fast_fit_with_masks_carves_the_visual_hull_and_reports_samples_saved(tmp_path, adaptive):
     from nepf_core.data.detect import load_scene
     from nepf_core.data.synth import make_scene
     from nepf_core.fit import fit
@@ -248,10 +249,16 @@ def test_fast_fit_with_masks_carves_the_visual_hull_and_reports_samples_saved(tm
     cfg.model.occupancy_resolution = 16
     cfg.train.iters, cfg.train.batch_rays, cfg.train.log_every = 6, 64, 2
     cfg.train.sync_every, cfg.train.eval_every_s, cfg.train.occupancy_every = 0, 0.0, 3
+    cfg.train.adaptive = adaptive
     run = tmp_path / "run"
     fit(scene, run, cfg, device="cpu")
     rep = json.loads((run / "report.json").read_text())
     dec = {d["decision"]: d for d in rep["decisions"]}
+    if not adaptive:  # the everything-on baseline keeps the whole grid: no hull carving
+        assert dec["visual_hull"]["value"] is False and "disabled" in dec["visual_hull"]["reason"]
+        ck = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)["model"]
+        assert bool(ck["hull"].all())
+        return
     assert dec["mask_loss"]["value"] is True and dec["background_model"]["value"] is False
     assert dec["empty_space_skipping"]["value"] is True
     assert dec["visual_hull"]["value"] is True and "culled" in dec["visual_hull"]["reason"]
