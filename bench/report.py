@@ -16,8 +16,10 @@ Definitions (also written into ``table.md``):
   scene's rows, so that every row has a time.
 * **fast vs paper**: P = the best test PSNR ``paper`` reached; times of both and
   ratio = t_paper / t_fast (> 1: fast gets there sooner).
-* **adaptive vs all_on**: P = min(final_adaptive, final_all_on); times of both, the final
-  PSNR difference (adaptive - all_on) and time saved = (t_all_on - t_adaptive) / t_all_on.
+* **adaptive vs a baseline** (``all_on``: everything on, no empty-space skipping;
+  ``all_on_occ``: everything on except that the occupancy grid still skips empty space):
+  P = min(final_adaptive, final_baseline); times of both, the final PSNR difference
+  (adaptive - baseline) and time saved = (t_baseline - t_adaptive) / t_baseline.
 * With ``--repeats N`` > 1 every number is the median over repeats (pairs are matched by
   repeat index).
 """
@@ -30,6 +32,9 @@ import math
 import statistics
 import sys
 from pathlib import Path
+
+BASELINES = ("all_on", "all_on_occ")
+"""Variants the adaptive run is compared against (``bench/run.py`` ``VARIANTS``)."""
 
 # ----------------------------------------------------------------------------------------------
 # per-run quantities
@@ -169,32 +174,31 @@ def summarize(results: dict, target_psnr: float | None = None) -> dict:
 
     adaptive_vs_all_on = []
     configs = sorted({k[1] for k in groups})
-    for scene in scenes:
-        for config in configs:
-            ap, bp = groups.get((scene, config, "adaptive")), groups.get((scene, config, "all_on"))
-            if not ap or not bp:
-                continue
-            per = []
-            for a, b in zip(ap, bp):
-                fa, fb = final_test(a).get("test_psnr"), final_test(b).get("test_psnr")
-                target = min(fa, fb) if _finite(fa) and _finite(fb) else None
-                ta, tb = time_to_reach(a, target), time_to_reach(b, target)
-                per.append({"target": target, "final_adaptive": fa, "final_all_on": fb,
-                            "diff": (fa - fb) if target is not None else None, "t_adaptive": ta, "t_all_on": tb,
-                            "saved_pct": (100.0 * (tb - ta) / tb) if ta is not None and tb else None,
-                            "s_per_step_adaptive": _sps(a), "s_per_step_all_on": _sps(b),
-                            "chamfer_adaptive": chamfer_of(a)[0], "chamfer_all_on": chamfer_of(b)[0],
-                            "albedo_adaptive": final_test(a).get("albedo_psnr"),
-                            "albedo_all_on": final_test(b).get("albedo_psnr"),
-                            "left_out": _left_out(a)})
-            row = {"scene": scene, "config": config, "n": len(per), "per_repeat": per}
-            for k in ("target", "final_adaptive", "final_all_on", "diff", "t_adaptive", "t_all_on", "saved_pct",
-                      "s_per_step_adaptive", "s_per_step_all_on", "chamfer_adaptive", "chamfer_all_on",
-                      "albedo_adaptive", "albedo_all_on"):
-                vals = [x[k] for x in per]
-                row[k] = _median(vals) if all(v is not None for v in vals) else None
-            row["left_out"] = per[0]["left_out"] if per else []
-            adaptive_vs_all_on.append(row)
+    for scene, config, baseline in [(sc, co, b) for sc in scenes for co in configs for b in BASELINES]:
+        ap, bp = groups.get((scene, config, "adaptive")), groups.get((scene, config, baseline))
+        if not ap or not bp:
+            continue
+        per = []
+        for a, b in zip(ap, bp):
+            fa, fb = final_test(a).get("test_psnr"), final_test(b).get("test_psnr")
+            target = min(fa, fb) if _finite(fa) and _finite(fb) else None
+            ta, tb = time_to_reach(a, target), time_to_reach(b, target)
+            per.append({"target": target, "final_adaptive": fa, "final_all_on": fb,
+                        "diff": (fa - fb) if target is not None else None, "t_adaptive": ta, "t_all_on": tb,
+                        "saved_pct": (100.0 * (tb - ta) / tb) if ta is not None and tb else None,
+                        "s_per_step_adaptive": _sps(a), "s_per_step_all_on": _sps(b),
+                        "chamfer_adaptive": chamfer_of(a)[0], "chamfer_all_on": chamfer_of(b)[0],
+                        "albedo_adaptive": final_test(a).get("albedo_psnr"),
+                        "albedo_all_on": final_test(b).get("albedo_psnr"),
+                        "left_out": _left_out(a)})
+        row = {"scene": scene, "config": config, "baseline": baseline, "n": len(per), "per_repeat": per}
+        for k in ("target", "final_adaptive", "final_all_on", "diff", "t_adaptive", "t_all_on", "saved_pct",
+                  "s_per_step_adaptive", "s_per_step_all_on", "chamfer_adaptive", "chamfer_all_on",
+                  "albedo_adaptive", "albedo_all_on"):
+            vals = [x[k] for x in per]
+            row[k] = _median(vals) if all(v is not None for v in vals) else None
+        row["left_out"] = per[0]["left_out"] if per else []
+        adaptive_vs_all_on.append(row)
     return {"rows": rows, "fast_vs_paper": fast_vs_paper, "adaptive_vs_all_on": adaptive_vs_all_on}
 
 
@@ -278,13 +282,17 @@ def write_table(results: dict, summary: dict, path: Path) -> None:
                      f"{rt} | {_fmt(x['fast_best'])} | {_fmt(x['budget_paper'], 0)}/{_fmt(x['budget_fast'], 0)} |")
         L.append("")
     if summary["adaptive_vs_all_on"]:
-        L += ["## adaptive vs all_on: time to reach the same test PSNR", "",
-              "| scene | config | target (dB) | final adaptive | final all_on | diff (dB) | t adaptive (s) | "
-              "t all_on (s) | time saved | s/step adaptive / all_on | Chamfer adaptive / all_on | "
-              "albedo adaptive / all_on | adaptive decisions |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        L += ["## adaptive vs everything-on baselines: time to reach the same test PSNR", "",
+              "Baselines: `all_on` = adaptivity off and no empty-space skipping (NeuS coarse-to-fine sampler, "
+              "same sample counts); `all_on_occ` = adaptivity off but the occupancy grid still skips empty "
+              "space (only the visual-hull, specular-lobe and plateau decisions differ).", "",
+              "| scene | config | baseline | target (dB) | final adaptive | final baseline | diff (dB) | "
+              "t adaptive (s) | t baseline (s) | time saved | s/step adaptive / baseline | "
+              "Chamfer adaptive / baseline | albedo adaptive / baseline | adaptive decisions |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
         for x in summary["adaptive_vs_all_on"]:
-            L.append(f"| {x['scene']} | {x['config']} | {_fmt(x['target'])} | {_fmt(x['final_adaptive'])} | "
+            L.append(f"| {x['scene']} | {x['config']} | {x['baseline']} | {_fmt(x['target'])} | "
+                     f"{_fmt(x['final_adaptive'])} | "
                      f"{_fmt(x['final_all_on'])} | {_fmt(x['diff'], 2)} | {_fmt_t(x['t_adaptive'])} | "
                      f"{_fmt_t(x['t_all_on'])} | {_fmt(x['saved_pct'], 0)}% | "
                      f"{_fmt(x['s_per_step_adaptive'], 3)} / {_fmt(x['s_per_step_all_on'], 3)} | "

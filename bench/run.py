@@ -38,7 +38,11 @@ DEFAULT_SCENES_ROOT = "/work/shared/scenes"
 DEFAULT_DATASETS_ROOT = "/work/shared/datasets"
 VARIANTS = {
     "adaptive": {},                          # the default: fit() leaves out what the scene does not need
-    "all_on": {"train.adaptive": False},     # everything on
+    # everything on: no decision is taken, and no empty space is skipped (NeuS coarse + importance
+    # sampling with the preset's sample counts, no occupancy grid to maintain)
+    "all_on": {"train.adaptive": False, "render.sampler": "neus", "model.occupancy_resolution": 0},
+    # everything on except empty-space skipping: isolates the visual-hull, specular and plateau decisions
+    "all_on_occ": {"train.adaptive": False},
 }
 
 
@@ -275,7 +279,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--holdout-every", type=int, default=8,
                    help="real data: views 0, K, 2K, ... are held out for testing (default 8)")
     p.add_argument("--configs", default="fast,paper", help="comma-separated presets (paper, fast, tiny)")
-    p.add_argument("--variants", default="adaptive", help="comma-separated: adaptive (default), all_on")
+    p.add_argument("--variants", default="adaptive", help="comma-separated: adaptive (default), all_on (everything on, no "
+                   "empty-space skipping), all_on_occ (everything on, occupancy grid kept)")
     p.add_argument("--budget", type=float, default=600.0, help="training seconds per run (default 600)")
     p.add_argument("--budget-for", action="append", default=[], metavar="CONFIG=S",
                    help="per-config budget, e.g. paper=1800 (repeatable or comma-separated)")

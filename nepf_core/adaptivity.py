@@ -5,7 +5,8 @@ Rules (each decision is logged with its step and reason):
   the grid starts from the masks' visual hull, so no samples fall outside the mask bounds.
   Without masks: no mask loss, a background radiance model B(d) is on.
 * **Specular lobe.** Every ``check_every`` steps after a warm-up (``warmup_frac`` of the
-  run) we measure, at the max-weight points of the batch, the mean metallic and the share
+  run, at most ``warmup_max_steps``, so that a time-budgeted run with a large nominal
+  iteration count still gets to decide) we measure, at the max-weight points of the batch, the mean metallic and the share
   of the surface PBR that comes from the GGX lobe (computed with and without it, no grad).
   If metallic < ``metal_thr`` and the share < ``spec_thr`` for ``patience`` checks in a row,
   the lobe is dropped. While it is off, the same statistics are still measured, and the
@@ -39,6 +40,7 @@ class Adaptivity:
 
     check_every = 100
     warmup_frac = 0.1
+    warmup_max_steps = 300
     metal_thr = 0.05
     spec_thr = 0.02
     patience = 3
@@ -158,7 +160,7 @@ class Adaptivity:
                 self.cfg.loss.w_hessian = self._hess_weight if want else 0.0
                 self.record("hessian_loss", want, f"eikonal residual EMA {self._eik_ema:.3f} "
                             f"{'>' if want else '<='} {self.eik_thr}", step)
-        if "specular" not in out.surf or step < self.warmup_frac * total:
+        if "specular" not in out.surf or step < min(self.warmup_frac * total, self.warmup_max_steps):
             return
         surf_w = out.weight_sum.detach() > 0.5
         if surf_w.sum() < 8:

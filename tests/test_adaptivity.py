@@ -66,6 +66,19 @@ def test_specular_dropped_after_patience_diffuse_checks():
     assert a.step_stats()["specular_share"] == pytest.approx(0.001)
 
 
+def test_specular_warmup_is_capped_for_long_nominal_runs():
+    """A time-budgeted fast run has iters=20000 but does ~1-2k steps: 10% would never end."""
+    a, cfg = _adapt(iters=20000)
+    a.on_step(a.warmup_max_steps - 100, _out(share=0.0), _losses())
+    assert a._diffuse_streak == 0                       # still warming up
+    steps = [a.warmup_max_steps + 100 * k for k in range(a.patience)]
+    for step in steps:
+        a.on_step(step, _out(share=0.0), _losses())
+    assert not cfg.render.specular
+    assert _names(a, "specular_lobe")[0]["step"] == steps[-1]
+    assert steps[-1] < 0.1 * cfg.train.iters            # the uncapped warm-up would still be running
+
+
 def test_specular_needs_enough_surface_rays():
     a, cfg = _adapt()
     for step in (100, 200, 300, 400):

@@ -84,6 +84,7 @@ def test_comparisons_arithmetic():
         _rec("s", "paper", "adaptive", [(60, 20.0), (120, 25.0), (180, 24.0)]),   # best 25 at 120 s
         _rec("s", "fast", "adaptive", [(60, 24.0), (120, 26.0), (180, 27.0)]),    # reaches 25 at 120 s
         _rec("s", "fast", "all_on", [(60, 22.0), (120, 25.5), (180, 26.0)]),
+        _rec("s", "fast", "all_on_occ", [(60, 27.5), (120, 28.0), (180, 28.0)]),
         _rec("t", "paper", "adaptive", [(60, 30.0)]),
         _rec("t", "fast", "adaptive", [(60, 20.0), (120, 29.0)]),                   # never reaches 30
     ]
@@ -92,7 +93,11 @@ def test_comparisons_arithmetic():
     assert fp["s"]["paper_best"] == 25.0 and fp["s"]["t_paper"] == 120 and fp["s"]["t_fast"] == 120
     assert fp["s"]["ratio"] == pytest.approx(1.0)
     assert fp["t"]["t_fast"] is None and fp["t"]["ratio"] is None
-    (aa,) = s["adaptive_vs_all_on"]
+    aa, ao = s["adaptive_vs_all_on"]
+    assert (aa["baseline"], ao["baseline"]) == ("all_on", "all_on_occ")
+    # against all_on_occ: target = min(27, 28) = 27, adaptive at 180 s, the baseline at 60 s
+    assert ao["target"] == 27.0 and ao["t_adaptive"] == 180 and ao["t_all_on"] == 60
+    assert ao["saved_pct"] == pytest.approx(100 * (60 - 180) / 60)
     # target = min(27, 26) = 26: adaptive first >= 26 at 120 s, all_on at 180 s
     assert aa["target"] == 26.0 and aa["t_adaptive"] == 120 and aa["t_all_on"] == 180
     assert aa["diff"] == pytest.approx(1.0) and aa["saved_pct"] == pytest.approx(100 * 60 / 180)
@@ -104,6 +109,23 @@ def test_comparisons_arithmetic():
     reps = [_rec("m", "fast", "adaptive", [(10, v)], repeat=i) for i, v in enumerate((20.0, 22.0, 30.0))]
     (row,) = summarize({"runs": reps})["rows"]
     assert row["test_psnr"] == 22.0 and row["n"] == 3
+
+
+def test_variants_build_their_baselines():
+    """`all_on` samples without any empty-space skipping, `all_on_occ` keeps the occupancy grid;
+    both switch adaptivity off; `adaptive` changes nothing in the preset."""
+    from bench.run import VARIANTS
+    from nepf_core.config import fast
+    from nepf_core.jobs import build_config
+    base = fast()
+    assert base.render.sampler == "occupancy" and base.model.occupancy_resolution > 0 and base.train.adaptive
+    on = build_config("fast", None, VARIANTS["all_on"])
+    assert on.render.sampler == "neus" and on.model.occupancy_resolution == 0 and not on.train.adaptive
+    occ = build_config("fast", None, VARIANTS["all_on_occ"])
+    assert occ.render.sampler == "occupancy" and occ.model.occupancy_resolution == base.model.occupancy_resolution
+    assert not occ.train.adaptive
+    ad = build_config("fast", None, VARIANTS["adaptive"])
+    assert ad.render == base.render and ad.model == base.model and ad.train.adaptive
 
 
 def test_rasterizer_hits_pixel_centres():
