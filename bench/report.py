@@ -124,6 +124,7 @@ def summarize(results: dict, target_psnr: float | None = None) -> dict:
             "test_psnr": _median([f.get("test_psnr") for f in fins]),
             "test_psnr_full": _median([f.get("test_psnr_full") for f in fins]),
             "albedo_psnr": _median([f.get("albedo_psnr") for f in fins]),
+            "albedo_psnr_lit": _median([f.get("albedo_psnr_lit") for f in fins]),
             "best_test_psnr": _median([best_psnr(r) for r in recs]),
             "chamfer": _median([c for c, _ in chs]), "chamfer_fine": all(fine for _, fine in chs),
             "chamfer_resolution": recs[0].get("chamfer_resolution"),
@@ -249,22 +250,24 @@ def write_table(results: dict, summary: dict, path: Path) -> None:
          + f"; load average (1, 5, 15 min) at start {_la(m.get('loadavg'))} and end {_la(m.get('loadavg_end'))}.", ""]
     L += ["## Runs", "",
           "| scene | config | variant | n | status | budget s | steps | train wall s | test PSNR masked | "
-          "test PSNR full | albedo PSNR | Chamfer (unit sphere) | peak RSS MB | s/step | NaN steps | X (dB) | "
-          "time to X (s) | CPU util |",
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+          "test PSNR full | albedo PSNR | albedo PSNR lit px | Chamfer (unit sphere) | peak RSS MB | s/step | "
+          "NaN steps | X (dB) | time to X (s) | CPU util |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(summary["rows"], key=lambda r: (r["scene"], r["config"], r["variant"])):
         ch = _fmt(r["chamfer"], 5) + ("" if r["chamfer_fine"] or r["chamfer"] is None else "*")
         tx = _fmt_t(r["t_to_X"]) + (f" ({r['t_to_X_reached']})" if r["n"] > 1 else "")
         L.append(f"| {r['scene']} | {r['config']} | {r['variant']} | {r['n']} | {r['status']} | {_fmt(r['budget_s'], 0)} | "
                  f"{_fmt(r['steps'], 0)} | {_fmt(r['train_wall_s'], 0)} | {_fmt(r['test_psnr'])} | "
-                 f"{_fmt(r['test_psnr_full'])} | {_fmt(r['albedo_psnr'])} | {ch} | {_fmt(r['peak_rss_mb'], 0)} | "
+                 f"{_fmt(r['test_psnr_full'])} | {_fmt(r['albedo_psnr'])} | {_fmt(r['albedo_psnr_lit'])} | {ch} | {_fmt(r['peak_rss_mb'], 0)} | "
                  f"{_fmt(r['s_per_step'], 3)} | {_fmt(r['nonfinite_steps'], 0)} | {_fmt(r['target_X'])} | {tx} | "
                  f"{_fmt(r['cpu_util'], 2)} |")
     res = {r["chamfer_resolution"] for r in summary["rows"]}
     L += ["", f"Chamfer: final model, marching cubes at {sorted(x for x in res if x)}³, "
               "100k-sample default per mesh, unit-sphere units; `*` = last in-training value (128³) because "
               "the fine one failed or was skipped. Peak RSS: the whole run process (os.wait4), including the "
-              "final Chamfer mesh. X: `--target-psnr` or the lowest final masked PSNR of the scene's rows. "
+              "final Chamfer mesh. Albedo PSNR (per-channel least-squares scale, sRGB) over every foreground "
+              "pixel, and over the lit ones only (test pixel max channel >= 1% of the foreground 99th "
+              "percentile; where the fixed light never reaches, no view constrains the albedo). X: `--target-psnr` or the lowest final masked PSNR of the scene's rows. "
               "CPU util: CPU seconds / process seconds of the run (at most the thread count; lower means "
               "the machine was shared or the run waited on I/O).", ""]
     errs = [(r["scene"], r["config"], r["variant"], e) for r in summary["rows"] for e in r["errors"]]
@@ -323,8 +326,8 @@ def plot_scene(results: dict, scene: str, out_png: Path) -> None:
     runs = [r for r in results.get("runs", []) if r["scene"] == scene]
     groups = _groups(runs)
     panels = [("test_psnr", "test PBR PSNR, masked (dB)"), ("chamfer", "Chamfer (unit sphere)"),
-              ("albedo_psnr", "albedo PSNR, aligned (dB)")]
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+              ("albedo_psnr", "albedo PSNR, aligned (dB)"), ("albedo_psnr_lit", "albedo PSNR, lit pixels (dB)")]
+    fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4.2))
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, ((_, config, variant), recs) in enumerate(sorted(groups.items())):
         col = colors[i % len(colors)]

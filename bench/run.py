@@ -367,7 +367,7 @@ def _metrics_summary(run_dir: Path, evals: list[dict] | None = None) -> dict:
     from nepf_core.plots import read_metrics
     path = run_dir / "metrics.jsonl"
     recs = read_metrics(path) if path.exists() else []
-    keys = ("step", "wall_s", "test_psnr", "test_psnr_full", "albedo_psnr", "chamfer", "chamfer_world", "final")
+    keys = ("step", "wall_s", "test_psnr", "test_psnr_full", "albedo_psnr", "albedo_psnr_lit", "lit_fraction", "chamfer", "chamfer_world", "final")
     tests = [{k: r.get(k) for k in keys if k in r} for r in recs if r.get("kind") == "test"]
     clock = {e["step"]: e for e in evals or [] if e.get("train_wall_s") is not None}
     for t in tests:
@@ -498,7 +498,7 @@ def main(argv: list[str] | None = None) -> int:
         fin = report.final_test(rec)
         print(f"[{i}/{len(runs)}] {spec['id']}: {rec['status']} steps={rec.get('steps')} "
               f"train={_f(rec.get('train_wall_s'))}s process={rec['process_wall_s']:.0f}s "
-              f"psnr={_f(fin.get('test_psnr'), 2)} albedo={_f(fin.get('albedo_psnr'), 2)} "
+              f"psnr={_f(fin.get('test_psnr'), 2)} albedo={_f(fin.get('albedo_psnr'), 2)} albedo_lit={_f(fin.get('albedo_psnr_lit'), 2)} "
               f"chamfer256={_f(rec.get('chamfer_final'), 5)} rss={rec['peak_rss_mb_process']:.0f}MB"
               + (f" error={rec['error']}" if rec.get("error") else ""), flush=True)
         results["finished"] = datetime.now().isoformat(timespec="seconds")

@@ -179,7 +179,12 @@ def sync_psnr(model, sampler: PixelSampler, cfg: NePFConfig, views: list[int], n
 
 def evaluate_test(model, cfg: NePFConfig, targets: EvalTargets, device, world_from_norm: np.ndarray,
                   stride: int, with_chamfer: bool) -> dict:
-    """Held-out metrics: masked/full PBR PSNR, aligned albedo PSNR, Chamfer (when given)."""
+    """Held-out metrics: masked/full PBR PSNR, aligned albedo PSNR, Chamfer (when given).
+
+    ``albedo_psnr`` is over every foreground pixel; ``albedo_psnr_lit`` only over foreground
+    pixels whose test image is lit (``max_c L_gt >= unlit_rel_threshold * q99``, the training
+    rule), with ``lit_fraction`` their share of the foreground.
+    """
     ts = targets.test_scene
     sampler = PixelSampler(ts, device)
     preds, albs = [], []
@@ -198,6 +203,12 @@ def evaluate_test(model, cfg: NePFConfig, targets: EvalTargets, device, world_fr
         ga = targets.gt_albedo[:, ::stride, ::stride]
         m = ts.masks[:, ::stride, ::stride]
         rec["albedo_psnr"], _ = albedo_psnr_aligned(np.stack(albs), ga, m)
+        # the same metric on the observable pixels only: a pixel the light never reaches carries
+        # no albedo information in any view (fixed light), so there any albedo fits the images
+        lit = (m > 0.5) & (gt.max(-1) >= unlit_threshold(ts.images, ts.masks, cfg.render.unlit_rel_threshold))
+        if lit.any():
+            rec["albedo_psnr_lit"], _ = albedo_psnr_aligned(np.stack(albs), ga, lit)
+            rec["lit_fraction"] = float(lit.sum() / max((m > 0.5).sum(), 1))
     if with_chamfer and targets.gt_mesh_path:
         from nepf_core.meshing import chamfer_against_gt
         try:

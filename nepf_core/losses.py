@@ -10,6 +10,7 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_hess  = w_hess * mean sum_i |H_ii f|
     L_light = w_light * (l3 |var x - var I| + l4 |var n - var l| + l5 |var x - var l|)
     L_asm   = w_albedo_smooth * mean | c(x*) - c(x* + eps) |   (albedo smoothness prior, off in paper)
+    L_met   = w_metallic * mean m(x*)                           (dielectric prior, off in paper)
     L_mask  = w_mask * BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)
 
 With masks, colour terms average over foreground rays only (NeuS); ``L_surf`` and
@@ -54,6 +55,13 @@ class LossConfig:
     """Albedo smoothness prior at the max-weight points (needs ``RenderConfig.albedo_smooth_sigma
     > 0``); not in the paper. Unlit regions carry no albedo information, so without a prior
     their albedo is whatever the network extrapolates; this lets neighbouring lit albedo fill it."""
+    albedo_smooth_unlit_only: bool = False
+    """Apply the albedo smoothness prior only on unlit rays (``RayBatch.unlit``), where the images
+    say nothing about the albedo; lit rays keep the texture the data asks for."""
+    w_metallic: float = 0.0
+    """Dielectric prior: mean metallic at the max-weight points of surface rays; not in the paper.
+    Metallic also darkens the diffuse lobe (``(1 - m) f_d``), so without a prior a dark texture
+    can be explained as metal instead of as dark albedo (docs/FAST.md, spot_textured)."""
     w_mask: float = 0.1
     """Mask BCE weight (NeuS's value); only applied when the scene has masks."""
     color_space: str = "srgb"
@@ -121,13 +129,20 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool) -> d
         L["loss_light"] = zero
     if cfg.w_albedo_smooth > 0 and "albedo_jitter" in out.surf:
         keep = surf_rays > 0.5
+        if cfg.albedo_smooth_unlit_only and rays.unlit is not None:
+            keep = keep & rays.unlit
         diff = (out.surf["albedo"] - out.surf["albedo_jitter"]).abs().mean(-1)
         L["loss_albedo_smooth"] = (diff * keep).sum() / keep.sum().clamp_min(1.0)
     else:
         L["loss_albedo_smooth"] = zero
+    if cfg.w_metallic > 0:
+        keep = surf_rays > 0.5
+        L["loss_metallic"] = (out.surf["metallic"].reshape(-1) * keep).sum() / keep.sum().clamp_min(1.0)
+    else:
+        L["loss_metallic"] = zero
     L["loss_mask"] = mask_bce(out.weight_sum, rays.mask) if (use_mask and rays.mask is not None and cfg.w_mask > 0) else zero
     L["loss"] = (cfg.w_r * L["loss_r"] + cfg.lambda1_surf * L["loss_surf"] + cfg.lambda2_vol * L["loss_vol"]
                  + cfg.w_eikonal * L["loss_eik"] + cfg.w_hessian * L["loss_hess"]
                  + cfg.w_light * L["loss_light"] + cfg.w_mask * L["loss_mask"]
-                 + cfg.w_albedo_smooth * L["loss_albedo_smooth"])
+                 + cfg.w_albedo_smooth * L["loss_albedo_smooth"] + cfg.w_metallic * L["loss_metallic"])
     return L

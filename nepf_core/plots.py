@@ -25,6 +25,7 @@ def plot_error_vs_time(metrics_path, out_png) -> None:
 
     recs = read_metrics(metrics_path)
     panels = [("test_psnr", "test PBR PSNR (dB)", "test"), ("albedo_psnr", "albedo PSNR (dB)", "test"),
+              ("albedo_psnr_lit", "albedo PSNR, lit pixels (dB)", "test"),
               ("chamfer", "Chamfer (unit sphere)", "test"), ("psnr_r", "sync PSNR (dB)", "sync"),
               ("loss", "training loss", "train")]
     panels = [p for p in panels if any(p[0] in r and r[p[0]] is not None for r in recs)]

@@ -123,6 +123,11 @@ def test_albedo_smoothness_loss_hand_value_and_renderer_output():
     expected = ((0.4 / 3) + 0.0 + 0.9) / 3
     assert abs(L["loss_albedo_smooth"].item() - expected) < 1e-6
     assert abs(L["loss"].item() - 2.0 * expected) < 1e-6
+    # only on unlit rays: rays 0 and 3 are unlit; ray 3 is background, so only ray 0 (diff 0.4/3) counts
+    rays.unlit = torch.tensor([True, False, False, True])
+    lc.albedo_smooth_unlit_only = True
+    assert abs(compute_losses(out, rays, lc, use_mask=True)["loss_albedo_smooth"].item() - 0.4 / 3) < 1e-6
+    rays.unlit = None
 
     cfg, model, rays = _model_and_rays(unlit=False)
     cfg.render.albedo_smooth_sigma = 0.02
@@ -130,3 +135,26 @@ def test_albedo_smoothness_loss_hand_value_and_renderer_output():
     assert out.surf["albedo_jitter"].shape == (len(rays), 3)
     assert not torch.equal(out.surf["albedo_jitter"], out.surf["albedo"])
     assert "albedo_jitter" not in render_rays(model, rays, cfg.render, train=False).surf
+
+
+def test_metallic_prior_hand_value_and_gradient_sign():
+    """L_met = mean metallic over surface rays; its gradient pushes metallic down."""
+    R = 4
+    z3, z1 = torch.zeros(R, 3), torch.zeros(R)
+    metallic = torch.tensor([0.2, 0.8, 0.5, 1.0], requires_grad=True)
+    out = RenderOutput(rgb_r=z3, rgb_vol=z3, rgb_surf=z3, weight_sum=torch.ones(R), w_max=z1, depth=z1,
+                       eikonal=torch.zeros(0), hessian=torch.zeros(0),
+                       surf={"albedo": z3, "metallic": metallic, "x": z3, "normal": z3,
+                             "light_dir": z3, "intensity": z1})
+    mask = torch.tensor([1.0, 1.0, 1.0, 0.0])    # background ray: not counted
+    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=z3, mask=mask)
+    lc = LossConfig(w_r=0.0, lambda1_surf=0.0, lambda2_vol=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0,
+                    w_mask=0.0, w_metallic=0.5)
+    L = compute_losses(out, rays, lc, use_mask=True)
+    expected = (0.2 + 0.8 + 0.5) / 3
+    assert abs(L["loss_metallic"].item() - expected) < 1e-6
+    assert abs(L["loss"].item() - 0.5 * expected) < 1e-6
+    L["loss"].backward()
+    assert torch.allclose(metallic.grad, torch.tensor([0.5 / 3, 0.5 / 3, 0.5 / 3, 0.0]))
+    # off by default: the term is zero and adds nothing
+    assert compute_losses(out, rays, LossConfig(), use_mask=True)["loss_metallic"].item() == 0.0
