@@ -11,6 +11,7 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_light = w_light * (l3 |var x - var I| + l4 |var n - var l| + l5 |var x - var l|)
     L_asm   = w_albedo_smooth * mean | c(x*) - c(x* + eps) |   (albedo smoothness prior, off in paper)
     L_met   = w_metallic * mean m(x*)                           (dielectric prior, off in paper)
+    L_fill  = w_albedo_fill * mean_unlit | c(x*) - sg(mean_lit c(x*)) |   (unobserved albedo prior, off in paper)
     L_mask  = w_mask * BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)
 
 With masks, colour terms average over foreground rays only (NeuS); ``L_surf`` and
@@ -58,6 +59,10 @@ class LossConfig:
     albedo_smooth_unlit_only: bool = False
     """Apply the albedo smoothness prior only on unlit rays (``RayBatch.unlit``), where the images
     say nothing about the albedo; lit rays keep the texture the data asks for."""
+    w_albedo_fill: float = 0.0
+    """Unlit surface rays pull their albedo toward the batch's mean lit albedo (stop-grad): where
+    the light never reaches, no view constrains the albedo, and without a prior the material
+    network extrapolates the dark radiance features to a black albedo. Needs ``RayBatch.unlit``."""
     w_metallic: float = 0.0
     """Dielectric prior: mean metallic at the max-weight points of surface rays; not in the paper.
     Metallic also darkens the diffuse lobe (``(1 - m) f_d``), so without a prior a dark texture
@@ -135,6 +140,13 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool) -> d
         L["loss_albedo_smooth"] = (diff * keep).sum() / keep.sum().clamp_min(1.0)
     else:
         L["loss_albedo_smooth"] = zero
+    L["loss_albedo_fill"] = zero
+    if cfg.w_albedo_fill > 0 and rays.unlit is not None:
+        surf = surf_rays > 0.5
+        lit, dark = surf & ~rays.unlit, surf & rays.unlit
+        if lit.any() and dark.any():
+            ref = out.surf["albedo"][lit].detach().mean(0)
+            L["loss_albedo_fill"] = (out.surf["albedo"][dark] - ref).abs().mean()
     if cfg.w_metallic > 0:
         keep = surf_rays > 0.5
         L["loss_metallic"] = (out.surf["metallic"].reshape(-1) * keep).sum() / keep.sum().clamp_min(1.0)
@@ -144,5 +156,6 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool) -> d
     L["loss"] = (cfg.w_r * L["loss_r"] + cfg.lambda1_surf * L["loss_surf"] + cfg.lambda2_vol * L["loss_vol"]
                  + cfg.w_eikonal * L["loss_eik"] + cfg.w_hessian * L["loss_hess"]
                  + cfg.w_light * L["loss_light"] + cfg.w_mask * L["loss_mask"]
-                 + cfg.w_albedo_smooth * L["loss_albedo_smooth"] + cfg.w_metallic * L["loss_metallic"])
+                 + cfg.w_albedo_smooth * L["loss_albedo_smooth"] + cfg.w_metallic * L["loss_metallic"]
+                 + cfg.w_albedo_fill * L["loss_albedo_fill"])
     return L

@@ -158,3 +158,30 @@ def test_metallic_prior_hand_value_and_gradient_sign():
     assert torch.allclose(metallic.grad, torch.tensor([0.5 / 3, 0.5 / 3, 0.5 / 3, 0.0]))
     # off by default: the term is zero and adds nothing
     assert compute_losses(out, rays, LossConfig(), use_mask=True)["loss_metallic"].item() == 0.0
+
+
+def test_albedo_fill_pulls_unlit_rays_toward_the_mean_lit_albedo():
+    R = 5
+    z3, z1 = torch.zeros(R, 3), torch.zeros(R)
+    albedo = torch.tensor([[0.2, 0.4, 0.6], [0.4, 0.6, 0.8], [0.0, 0.0, 0.0], [0.9, 0.9, 0.9], [0.5, 0.5, 0.5]],
+                          requires_grad=True)
+    out = RenderOutput(rgb_r=z3, rgb_vol=z3, rgb_surf=z3, weight_sum=torch.ones(R), w_max=z1, depth=z1,
+                       eikonal=torch.zeros(0), hessian=torch.zeros(0),
+                       surf={"albedo": albedo, "x": z3, "normal": z3, "light_dir": z3, "intensity": z1})
+    mask = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0])            # the last ray is background
+    unlit = torch.tensor([False, False, True, True, True])
+    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=z3, mask=mask, unlit=unlit)
+    lc = LossConfig(w_r=0.0, lambda1_surf=0.0, lambda2_vol=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0,
+                    w_mask=0.0, w_albedo_fill=3.0)
+    L = compute_losses(out, rays, lc, use_mask=True)
+    ref = torch.tensor([0.3, 0.5, 0.7])                        # mean of the two lit rays
+    expected = ((torch.tensor([0.0, 0.0, 0.0]) - ref).abs().sum() + (torch.tensor([0.9] * 3) - ref).abs().sum()) / 6
+    assert abs(L["loss_albedo_fill"].item() - expected.item()) < 1e-6
+    assert abs(L["loss"].item() - 3.0 * expected.item()) < 1e-6
+    L["loss"].backward()
+    g = albedo.grad
+    assert torch.all(g[:2] == 0) and torch.all(g[4] == 0)      # lit rays (reference is stop-grad) and background
+    assert torch.all(g[2] < 0) and torch.all(g[3] > 0)         # the dark one brightens, the bright one darkens
+    # no unlit flags (e.g. evaluation batches): the term is zero
+    rays.unlit = None
+    assert compute_losses(out, rays, lc, use_mask=True)["loss_albedo_fill"].item() == 0.0
