@@ -37,16 +37,21 @@ def _coerce(current, value, key: str):
 
 
 def build_config(preset: str = "fast", iters: int | None = None, overrides: dict | None = None) -> NePFConfig:
-    """A preset with the user's iteration count and optional ``{"section.field": value}`` overrides."""
+    """A preset with the user's iteration count and optional ``{"section.field": value}`` overrides
+    (nested fields too: ``{"model.photon.n_freqs_x": 6}``)."""
     cfg = make_preset(preset)
     if iters is not None:
         if int(iters) < 1:
             raise ValueError(f"iters must be >= 1 (got {iters})")
         cfg.train.iters = int(iters)
     for key, value in (overrides or {}).items():
-        section, _, name = key.partition(".")
-        obj = getattr(cfg, section, None)
-        if obj is None or not hasattr(obj, name):
+        *path, name = key.split(".")
+        obj = cfg
+        for part in path:   # "section.field" or deeper, e.g. "model.photon.use_feature"
+            obj = getattr(obj, part, None) if part and not isinstance(obj, (bool, int, float, str)) else None
+            if obj is None:
+                break
+        if not path or obj is None or not hasattr(obj, name) or name.startswith("_"):
             raise ValueError(f"unknown config field {key!r}")
         setattr(obj, name, _coerce(getattr(obj, name), value, key))
     return cfg

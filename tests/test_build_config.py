@@ -21,7 +21,18 @@ def test_numeric_overrides_and_iters():
 
 @pytest.mark.parametrize("ov,msg", [({"render.specular": "maybe"}, "is a bool"),
                                     ({"render.nope": "1"}, "unknown config field"),
-                                    ({"nope.x": "1"}, "unknown config field")])
+                                    ({"nope.x": "1"}, "unknown config field"),
+                                    ({"model.photon.nope": "1"}, "unknown config field"),
+                                    ({"model.name.x": "1"}, "unknown config field"),
+                                    ({"train": "1"}, "unknown config field")])
 def test_bad_overrides_name_the_field(ov, msg):
     with pytest.raises(ValueError, match=msg):
         build_config("fast", None, ov)
+
+
+def test_nested_overrides_reach_head_configs_without_touching_the_others():
+    base = fast()
+    cfg = build_config("fast", None, {"model.photon.use_feature": "true", "model.photon.n_freqs_x": "6"})
+    assert cfg.model.photon.use_feature is True and cfg.model.photon.n_freqs_x == 6
+    assert base.model.photon.use_feature is False and base.model.photon.n_freqs_x != 6
+    assert cfg.model.material == base.model.material and cfg.model.radiance == base.model.radiance
