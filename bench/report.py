@@ -378,12 +378,34 @@ def write_all(results: dict, out_dir: Path, target_psnr: float | None = None) ->
     return summary
 
 
+def merge_results(dirs: list[Path]) -> dict:
+    """One ``results.json`` dict from several: every run, with the first folder's machine and
+    settings, and the command of each folder joined by `` & `` (they ran side by side)."""
+    parts = []
+    for d in dirs:
+        f = d / "results.json"
+        if not f.exists():
+            raise SystemExit(f"--merge: {f} not found")
+        parts.append(json.loads(f.read_text()))
+    merged = dict(parts[0])
+    merged["runs"] = [r for part in parts for r in part.get("runs", [])]
+    merged["command"] = " & ".join(str(part.get("command", "?")) for part in parts)
+    merged["merged_from"] = [str(d) for d in dirs]
+    return merged
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m bench report", description="rebuild table.md and plots")
     p.add_argument("results_dir")
     p.add_argument("--target-psnr", type=float, default=None)
+    p.add_argument("--merge", nargs="+", default=None, metavar="DIR",
+                   help="first write RESULTS_DIR/results.json from the runs of these results folders "
+                        "(e.g. two benchmarks run side by side at the same time, one variant each)")
     a = p.parse_args(argv)
     d = Path(a.results_dir)
+    if a.merge:
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "results.json").write_text(json.dumps(merge_results([Path(x) for x in a.merge]), indent=2))
     results = json.loads((d / "results.json").read_text())
     write_all(results, d, a.target_psnr)
     print((d / "table.md").read_text())

@@ -71,6 +71,26 @@ def test_bench_run_end_to_end(scenes_root, tmp_path):
     assert "| tiny_sphere | tiny | adaptive |" in (out / "table.md").read_text()
 
 
+def test_report_merges_benchmarks_run_side_by_side(tmp_path):
+    """Two results folders (one variant each) -> one table with the adaptive comparison."""
+    from bench.report import main as report_main
+    for name, variant, curve in (("a", "adaptive", [(60, 24.0), (120, 27.0)]), ("b", "all_on", [(60, 20.0), (120, 26.0)])):
+        d = tmp_path / name
+        d.mkdir()
+        (d / "results.json").write_text(json.dumps({"command": f"bench {name}", "machine": {}, "settings": {},
+                                                    "runs": [_rec("s", "fast", variant, curve)]}))
+    out = tmp_path / "merged"
+    assert report_main([str(out), "--merge", str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    merged = json.loads((out / "results.json").read_text())
+    assert [r["variant"] for r in merged["runs"]] == ["adaptive", "all_on"]
+    assert merged["command"] == "bench a & bench b"
+    table = (out / "table.md").read_text()
+    # target = min(27, 26) = 26: adaptive reaches it at 120 s, all_on at 120 s -> 0% saved
+    assert "| s | fast | all_on | 26.00 |" in table
+    with pytest.raises(SystemExit, match="not found"):
+        report_main([str(out), "--merge", str(tmp_path / "missing")])
+
+
 def _rec(scene, config, variant, curve, repeat=0, **kw):
     pts = [{"step": i + 1, "wall_s": float(w), "test_psnr": float(v), "final": i == len(curve) - 1}
            for i, (w, v) in enumerate(curve)]
