@@ -125,22 +125,19 @@ def tiny() -> NePFConfig:
 
 
 def fast() -> NePFConfig:
-    """Grid SDF + small heads + occupancy-guided samples + finite-difference normals, and
-    material priors the paper does not have: unlit pixels train neither the albedo nor
-    roughness/metallic, a small albedo smoothness term, and a photon intensity that starts
-    where the brightest pixels need albedo 0.5 (docs/FAST.md, "Albedo in unlit regions" and
-    "Why the spot_textured albedo is constant")."""
+    """Grid SDF + small heads + occupancy-guided samples + finite-difference normals, and two
+    albedo priors the paper does not have: unlit pixels do not train the albedo, and a small
+    albedo smoothness term (docs/FAST.md, "Albedo in unlit regions"; the opt-in material
+    switches measured in "Why the spot_textured albedo is constant" are off here)."""
     head = HeadConfig(width=64, depth=2, activation="relu", n_freqs_v=4)
     return NePFConfig(
         name="fast",
         model=ModelConfig(sdf_kind="grid", radiance=head, photon=HeadConfig(width=64, depth=2, n_freqs_x=2,
                                                                            use_feature=False),
-                          material=HeadConfig(width=64, depth=2), occupancy_resolution=64,
-                          light_init_albedo=0.5),
+                          material=HeadConfig(width=64, depth=2), occupancy_resolution=64),
         render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1, sampler="occupancy",
                             normals="fd", alpha_mode="sample", head_weight_threshold=1e-4,
-                            eikonal_fraction=0.1, unlit_albedo_stopgrad=True, unlit_material_stopgrad=True,
-                            albedo_smooth_sigma=0.02),
+                            eikonal_fraction=0.1, unlit_albedo_stopgrad=True, albedo_smooth_sigma=0.02),
         loss=LossConfig(w_hessian=0.0, w_albedo_smooth=2e-4),
         train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,
                           anneal_end=2000, log_every=20, sync_every=500, checkpoint_every=1000,

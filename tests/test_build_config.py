@@ -8,12 +8,13 @@ from nepf_core.jobs import build_config
 
 def test_bool_overrides_parse_false_as_false():
     assert fast().render.unlit_albedo_stopgrad is True
-    assert fast().render.unlit_material_stopgrad is True
+    base = fast()
+    assert base.render.unlit_albedo_stopgrad is True and base.render.unlit_material_stopgrad is False
     cfg = build_config("fast", None, {"render.unlit_albedo_stopgrad": "False",
-                                      "render.unlit_material_stopgrad": "false", "render.specular": "true"})
+                                      "render.unlit_material_stopgrad": "true", "render.specular": "false"})
     assert cfg.render.unlit_albedo_stopgrad is False
-    assert cfg.render.unlit_material_stopgrad is False
-    assert cfg.render.specular is True
+    assert cfg.render.unlit_material_stopgrad is True
+    assert cfg.render.specular is False
 
 
 def test_numeric_overrides_and_iters():
