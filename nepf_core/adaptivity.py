@@ -17,7 +17,9 @@ Rules (each decision is logged with its step and reason):
   PSNR has not improved by ``min_gain_db`` over ``plateau_patience`` evaluations **and**
   over at least ``plateau_min_frac`` (default 1/2) of the training time so far
   (``t - t_best >= plateau_min_frac * t``), so frequent evaluations cannot stop a run that
-  still improves slowly.
+  still improves slowly. With a grid SDF the plateau clock starts only when the
+  coarse-to-fine schedule has activated every level (``train.coarse_to_fine_frac`` of the
+  run): before that the model is still gaining resolution.
 * **Empty space.** The occupancy grid skips it; we report the fraction of cells culled
   (``occupied_fraction``) and the fraction of samples saved (``samples_saved_fraction``:
   the running mean over training steps of the batch-mean share of each ray's ``[near, far]``
@@ -60,6 +62,7 @@ class Adaptivity:
         self._best_psnr = -math.inf
         self._evals_since_best = 0
         self._best_wall = None
+        self._plateau_armed = False
         self._hess_weight = cfg.loss.w_hessian
         self._stats: dict = {}
         self._occ_frac = None
@@ -73,7 +76,8 @@ class Adaptivity:
     def state(self) -> dict:
         return {"decisions": self.decisions, "specular": self.cfg.render.specular, "streak": self._diffuse_streak,
                 "eik_ema": self._eik_ema, "best": self._best_psnr if math.isfinite(self._best_psnr) else None,
-                "since_best": self._evals_since_best, "best_wall": self._best_wall, "w_hessian": self.cfg.loss.w_hessian,
+                "since_best": self._evals_since_best, "best_wall": self._best_wall,
+                "plateau_armed": self._plateau_armed, "w_hessian": self.cfg.loss.w_hessian,
                 "skip_sum": self._skip_sum, "skip_n": self._skip_n}
 
     def load_state(self, s: dict) -> None:
@@ -86,6 +90,7 @@ class Adaptivity:
         self._best_psnr = s.get("best") if s.get("best") is not None else -math.inf
         self._evals_since_best = s.get("since_best", 0)
         self._best_wall = s.get("best_wall")
+        self._plateau_armed = s.get("plateau_armed", False)
         self.cfg.loss.w_hessian = s.get("w_hessian", self.cfg.loss.w_hessian)
         self._skip_sum, self._skip_n = s.get("skip_sum", 0.0), s.get("skip_n", 0)
 
@@ -188,11 +193,25 @@ class Adaptivity:
             self._diffuse_streak = 0
             self.record("specular_lobe", True, f"L_vol residual on the brightest 5% pixels is {ratio:.1f}x the median", step)
 
-    def on_test_eval(self, step: int, rec: dict) -> None:
+    def plateau_min_progress(self) -> float:
+        """Training progress before which no plateau counts: a grid SDF still gains resolution
+        until its coarse-to-fine schedule ends (``train.coarse_to_fine_frac``)."""
+        return self.cfg.train.coarse_to_fine_frac if self.cfg.model.sdf_kind == "grid" else 0.0
+
+    def on_test_eval(self, step: int, rec: dict, progress: float | None = None) -> None:
         v = rec.get("test_psnr")
         if v is None or not math.isfinite(v):
             return
         wall = rec.get("wall_s")
+        growing = progress is not None and progress < self.plateau_min_progress()
+        if growing or (progress is not None and not self._plateau_armed):
+            # still adding capacity: track the best, but the plateau clock starts only once
+            # every level is active (then it restarts from this evaluation)
+            self._best_psnr = max(self._best_psnr, v)
+            self._evals_since_best = 0
+            self._best_wall = wall
+            self._plateau_armed = not growing
+            return
         if v > self._best_psnr + self.min_gain_db:
             self._best_psnr = v
             self._best_wall = wall

@@ -341,7 +341,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
         rec.update({"kind": "test", "step": step, "wall_s": round(w_train, 3), "final": final})
         mlog.write(rec)
         last_test = rec
-        adapt.on_test_eval(step, rec)
+        adapt.on_test_eval(step, rec, progress=progress_frac())
         excluded += time.perf_counter() - t0
         last_eval_wall = wall()
 

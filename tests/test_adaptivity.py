@@ -307,3 +307,26 @@ def test_plateau_must_span_half_the_training_time():
     b, _ = _adapt(iters_fixed=False)
     b.load_state(a.state())
     assert b._best_wall == 80.0 and b._evals_since_best == 5
+
+
+def test_no_plateau_while_a_grid_sdf_is_still_adding_levels():
+    """fast (grid SDF): evaluations before the coarse-to-fine schedule ends never stop the run,
+    and the plateau clock restarts when every level is active."""
+    cfg = fast()
+    a = Adaptivity(cfg, enabled=True, iters_fixed=False)
+    frac = cfg.train.coarse_to_fine_frac
+    assert a.plateau_min_progress() == frac > 0
+    flat = [(k, 24.0, 30.0 * k) for k in range(1, 6)]              # no gain at all, 30 s apart
+    for step, v, t in flat:
+        a.on_test_eval(step, {"test_psnr": v, "wall_s": t}, progress=0.9 * frac * step / 5)
+    assert not a.stop_requested and not _names(a, "early_stop")
+    # the first evaluation with every level active arms the plateau clock at its own time
+    a.on_test_eval(6, {"test_psnr": 24.0, "wall_s": 180.0}, progress=frac)
+    assert not a.stop_requested and a._best_wall == 180.0 and a._evals_since_best == 0
+    for step, t in ((7, 210.0), (8, 240.0), (9, 270.0)):
+        a.on_test_eval(step, {"test_psnr": 24.05, "wall_s": t}, progress=t / 600)
+    assert not a.stop_requested                                   # 90 s < 270 / 2
+    a.on_test_eval(10, {"test_psnr": 24.0, "wall_s": 360.0}, progress=0.6)
+    assert a.stop_requested                                       # 180 s >= 360 / 2, 4 evaluations
+    # an MLP SDF (tiny, paper) has no schedule: the plateau counts from the first evaluation
+    assert Adaptivity(tiny(), enabled=True, iters_fixed=False).plateau_min_progress() == 0.0
