@@ -344,6 +344,7 @@ def plot_scene(results: dict, scene: str, out_png: Path) -> None:
                              marker="*", ms=11, color=col, ls="none",
                              label=f"{label} final {r.get('chamfer_resolution')}³" if j == 0 else None)
     for ax, (key, ylabel) in zip(axes, panels):
+        ax.set_xlim(left=0)   # a panel with only the final Chamfer star would zoom onto one instant
         ax.set_xlabel("training wall time (s)")
         ax.set_ylabel(ylabel)
         ax.grid(alpha=0.3)
