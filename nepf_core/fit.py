@@ -202,12 +202,13 @@ def evaluate_test(model, cfg: NePFConfig, targets: EvalTargets, device, world_fr
     if targets.gt_albedo is not None and ts.masks is not None:
         ga = targets.gt_albedo[:, ::stride, ::stride]
         m = ts.masks[:, ::stride, ::stride]
-        rec["albedo_psnr"], _ = albedo_psnr_aligned(np.stack(albs), ga, m)
+        alb = np.stack(albs)
+        rec["albedo_psnr"], _ = albedo_psnr_aligned(alb, ga, m)
         # the same metric on the observable pixels only: a pixel the light never reaches carries
         # no albedo information in any view (fixed light), so there any albedo fits the images
         lit = (m > 0.5) & (gt.max(-1) >= unlit_threshold(ts.images, ts.masks, cfg.render.unlit_rel_threshold))
         if lit.any():
-            rec["albedo_psnr_lit"], _ = albedo_psnr_aligned(np.stack(albs), ga, lit)
+            rec["albedo_psnr_lit"], _ = albedo_psnr_aligned(alb, ga, lit)
             rec["lit_fraction"] = float(lit.sum() / max((m > 0.5).sum(), 1))
     if with_chamfer and targets.gt_mesh_path:
         from nepf_core.meshing import chamfer_against_gt
@@ -257,7 +258,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
         i0 = init_light_to_data(model, scene, cfg.model.light_init_albedo)
         adapt.record("light_init", {"intensity": round(i0, 4)},
                      f"photon intensity starts at {i0:.3g} = pi * q99 / {cfg.model.light_init_albedo}: the brightest "
-                     "pixels then need albedo ~0.5, away from the saturated end of its sigmoid")
+                     f"pixels then need albedo ~{cfg.model.light_init_albedo}, away from the saturated end of its sigmoid")
     try:  # fused Adam: one kernel over all tensors (8 ms vs 61 ms for the 4.8M grid values on 2 CPU cores)
         optimizer = torch.optim.Adam(_param_groups(model, cfg), betas=(0.9, 0.99), eps=1e-15, fused=True)
     except (RuntimeError, TypeError):

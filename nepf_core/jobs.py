@@ -17,6 +17,7 @@ Contract (stable; the worker codes against it):
 from __future__ import annotations
 
 import json
+from dataclasses import fields, is_dataclass
 from pathlib import Path
 
 from nepf_core.callbacks import FitCallbacks
@@ -48,10 +49,8 @@ def build_config(preset: str = "fast", iters: int | None = None, overrides: dict
         *path, name = key.split(".")
         obj = cfg
         for part in path:   # "section.field" or deeper, e.g. "model.photon.use_feature"
-            obj = getattr(obj, part, None) if part and not isinstance(obj, (bool, int, float, str)) else None
-            if obj is None:
-                break
-        if not path or obj is None or not hasattr(obj, name) or name.startswith("_"):
+            obj = getattr(obj, part, None) if is_dataclass(obj) else None
+        if not path or not is_dataclass(obj) or name not in {f.name for f in fields(obj)}:
             raise ValueError(f"unknown config field {key!r}")
         setattr(obj, name, _coerce(getattr(obj, name), value, key))
     return cfg

@@ -142,8 +142,8 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool) -> d
         L["loss_albedo_smooth"] = zero
     L["loss_albedo_fill"] = zero
     if cfg.w_albedo_fill > 0 and rays.unlit is not None:
-        surf = surf_rays > 0.5
-        lit, dark = surf & ~rays.unlit, surf & rays.unlit
+        on_surf = surf_rays > 0.5
+        lit, dark = on_surf & ~rays.unlit, on_surf & rays.unlit
         if lit.any() and dark.any():
             ref = out.surf["albedo"][lit].detach().mean(0)
             L["loss_albedo_fill"] = (out.surf["albedo"][dark] - ref).abs().mean()

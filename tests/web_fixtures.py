@@ -204,6 +204,10 @@ def run_job_small_export(data_dir, run_dir, **kwargs) -> dict:
     ``NEPF_RUN_JOB`` hook points here in the browser tests)."""
     from nepf_core.jobs import run_job
 
+    if kwargs.get("iters") is None and kwargs.get("time_budget_s"):
+        # a budgeted upload without an iteration count would stop at tiny's 100 steps (~5 s),
+        # before a browser test can watch and cancel it: train until the budget or a cancel
+        kwargs["iters"] = 100_000
     return run_job(data_dir, run_dir, **{**WEB_TEST_EXPORT, **kwargs})
 
 
