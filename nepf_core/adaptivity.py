@@ -17,10 +17,16 @@ Rules (each decision is logged with its step and reason):
   PSNR has not improved by ``min_gain_db`` over ``plateau_patience`` evaluations **and**
   over at least ``plateau_min_frac`` (default 1/2) of the training time so far
   (``t - t_best >= plateau_min_frac * t``), so frequent evaluations cannot stop a run that
-  still improves slowly. With a grid SDF the plateau clock starts only when the
+  still improves slowly. The stop comes after a cool-down of ``plateau_cooldown_frac`` of
+  the training time so far, over which the learning rate is annealed to its floor
+  (:meth:`Adaptivity.lr_after_plateau`). With a grid SDF the plateau clock starts only when the
   coarse-to-fine schedule has activated every level (``train.coarse_to_fine_frac`` of the
   run): before that the model is still gaining resolution.
-* **Empty space.** The occupancy grid skips it; we report the fraction of cells culled
+* **Coarse samples.** With the occupancy sampler, every ``check_every`` steps the number of
+  coarse samples per ray follows the measured occupied length ``L`` of the rays that hit
+  (EMA): one per cell crossed, ``clamp(ceil(L / h), min_coarse_samples, n_samples)``.
+* **Empty space.** The occupancy grid skips it; with masks, cells outside the visual hull are
+  not even queried at a refresh; we report the fraction of cells culled
   (``occupied_fraction``) and the fraction of samples saved (``samples_saved_fraction``:
   the running mean over training steps of the batch-mean share of each ray's ``[near, far]``
   that the sampler skipped, i.e. at equal sampling density the share of samples not spent there;
@@ -49,6 +55,7 @@ class Adaptivity:
     highlight_ratio = 3.0
     eik_thr = 0.05
     min_gain_db = 0.1
+    min_coarse_samples = 8
 
     def __init__(self, cfg, *, enabled: bool, iters_fixed: bool) -> None:
         self.cfg = cfg
@@ -56,7 +63,9 @@ class Adaptivity:
         self.iters_fixed = iters_fixed
         self.decisions: list[dict] = []
         self.use_mask_loss = False
+        self.plateaued = False
         self.stop_requested = False
+        self._cool_start = self._cool_len = self._cool_f0 = None
         self._diffuse_streak = 0
         self._eik_ema = None
         self._best_psnr = -math.inf
@@ -68,6 +77,7 @@ class Adaptivity:
         self._occ_frac = None
         self._skip_last = None
         self._skip_sum, self._skip_n = 0.0, 0
+        self._occ_len = None
 
     # -- bookkeeping --
     def record(self, decision: str, value, reason: str, step: int = 0) -> None:
@@ -77,8 +87,10 @@ class Adaptivity:
         return {"decisions": self.decisions, "specular": self.cfg.render.specular, "streak": self._diffuse_streak,
                 "eik_ema": self._eik_ema, "best": self._best_psnr if math.isfinite(self._best_psnr) else None,
                 "since_best": self._evals_since_best, "best_wall": self._best_wall,
-                "plateau_armed": self._plateau_armed, "w_hessian": self.cfg.loss.w_hessian,
-                "skip_sum": self._skip_sum, "skip_n": self._skip_n}
+                "plateau_armed": self._plateau_armed, "plateaued": self.plateaued,
+                "cool": [self._cool_start, self._cool_len, self._cool_f0], "w_hessian": self.cfg.loss.w_hessian,
+                "skip_sum": self._skip_sum, "skip_n": self._skip_n, "occ_len": self._occ_len,
+                "n_samples_occupied": self.cfg.render.n_samples_occupied}
 
     def load_state(self, s: dict) -> None:
         if not s:
@@ -91,8 +103,12 @@ class Adaptivity:
         self._evals_since_best = s.get("since_best", 0)
         self._best_wall = s.get("best_wall")
         self._plateau_armed = s.get("plateau_armed", False)
+        self.plateaued = s.get("plateaued", False)
+        self._cool_start, self._cool_len, self._cool_f0 = s.get("cool", [None, None, None])
         self.cfg.loss.w_hessian = s.get("w_hessian", self.cfg.loss.w_hessian)
         self._skip_sum, self._skip_n = s.get("skip_sum", 0.0), s.get("skip_n", 0)
+        self._occ_len = s.get("occ_len")
+        self.cfg.render.n_samples_occupied = s.get("n_samples_occupied", self.cfg.render.n_samples_occupied)
 
     # -- before training --
     def decide_before_training(self, scene) -> None:
@@ -129,8 +145,8 @@ class Adaptivity:
 
     def update_occupancy(self, model, step: int) -> None:
         occ = model.occupancy
-        occ.update(model.sdf.sdf, float(model.deviation().detach()), step)
-        occ.occ &= model.hull
+        hull = None if bool(model.hull.all()) else model.hull  # cells outside the hull are never queried
+        occ.update(model.sdf.sdf, float(model.deviation().detach()), step, allowed=hull)
         if hasattr(occ, "occupied_fraction"):
             self._occ_frac = float(occ.occupied_fraction())
 
@@ -144,11 +160,16 @@ class Adaptivity:
             s["occupied_fraction"] = self._occ_frac
         if self._skip_last is not None:
             s["skipped_fraction"] = self._skip_last
+        if self._occ_len is not None:
+            s["occupied_length"] = self._occ_len
         return s
 
     def on_step(self, step: int, out, losses: dict) -> None:
         eik = float(losses["loss_eik"].detach()) if "loss_eik" in losses else 0.0
         self._eik_ema = eik if self._eik_ema is None else 0.95 * self._eik_ema + 0.05 * eik
+        occ_len = getattr(out, "occupied_length", None)
+        if occ_len is not None and math.isfinite(occ_len):
+            self._occ_len = occ_len if self._occ_len is None else 0.9 * self._occ_len + 0.1 * occ_len
         skip = getattr(out, "skip_fraction", None)
         if skip is not None and math.isfinite(skip):
             self._skip_last = skip
@@ -156,6 +177,8 @@ class Adaptivity:
             self._skip_n += 1
         if not self.enabled:
             return
+        if step % self.check_every == 0:
+            self._decide_coarse_samples(step)
         total = self.cfg.train.iters
         # Hessian only while the surface is rough
         if self._hess_weight > 0 and step % self.check_every == 0:
@@ -186,6 +209,27 @@ class Adaptivity:
             self.cfg.render.specular = True
             self._diffuse_streak = 0
             self.record("specular_lobe", True, f"specular share would be {share:.3%} > {2 * self.spec_thr:.0%}", step)
+
+    def coarse_samples_for(self, occupied_length: float) -> int:
+        """One coarse sample per occupancy cell crossed: ``n = clamp(ceil(L / h), n_min, n_samples)``
+        with ``L`` the mean occupied length of the rays that hit and ``h`` the cell size."""
+        r = self.cfg.render
+        h = 2.0 * 1.0 / max(self.cfg.model.occupancy_resolution, 1)  # the grid covers [-1, 1]^3
+        return int(min(max(math.ceil(occupied_length / h), self.min_coarse_samples), r.n_samples))
+
+    def _decide_coarse_samples(self, step: int) -> None:
+        r = self.cfg.render
+        if r.sampler != "occupancy" or self._occ_len is None:
+            return
+        n = self.coarse_samples_for(self._occ_len)
+        cur = r.n_samples_occupied if r.n_samples_occupied > 0 else r.n_samples
+        if n != cur and (abs(n - cur) >= 4 or n in (self.min_coarse_samples, r.n_samples)):
+            r.n_samples_occupied = n
+            h = 2.0 / max(self.cfg.model.occupancy_resolution, 1)
+            self.record("coarse_samples", n, f"rays cross {self._occ_len:.3f} of occupied space on average "
+                        f"= {self._occ_len / h:.1f} cells of {h:.4f}: {n} coarse samples per ray in occupied cells "
+                        f"(preset {r.n_samples}; the uniform sampler's spacing over the unit sphere would be "
+                        f"{2.0 / r.n_samples:.3f})", step)
 
     def on_highlight_residual(self, step: int, ratio: float) -> None:
         if self.enabled and not self.cfg.render.specular and ratio > self.highlight_ratio:
@@ -222,12 +266,39 @@ class Adaptivity:
         if wall is not None and self._best_wall is not None:
             long_enough = (wall - self._best_wall) >= self.cfg.train.plateau_min_frac * wall
         if (self.enabled and not self.iters_fixed and self._evals_since_best >= self.cfg.train.plateau_patience
-                and long_enough and not self.stop_requested):
-            self.stop_requested = True
+                and long_enough and not self.plateaued):
+            self.plateaued = True
             span = "" if wall is None or self._best_wall is None else \
                 f" and {wall - self._best_wall:.0f} s of {wall:.0f} s of training"
+            frac = self.cfg.train.plateau_cooldown_frac
+            if wall is None or frac <= 0:
+                self.stop_requested = True
+                then = "stop now"
+            else:
+                self._cool_start, self._cool_len = wall, frac * wall
+                then = (f"anneal the learning rate to its floor over {self._cool_len:.0f} s "
+                        f"({frac:.0%} of the training time so far), then stop")
             self.record("early_stop", True, f"held-out PSNR plateaued: no gain > {self.min_gain_db} dB over "
-                        f"{self._evals_since_best} evaluations{span} (best {self._best_psnr:.2f} dB)", step)
+                        f"{self._evals_since_best} evaluations{span} (best {self._best_psnr:.2f} dB): {then}", step)
+
+    def lr_after_plateau(self, wall: float, f_now: float) -> float:
+        """Learning-rate factor once the plateau rule fired: a cosine from the factor at that
+        moment ``f0`` to the floor ``alpha`` over the cool-down ``D`` (``plateau_cooldown_frac``
+        of the training time at the plateau),
+        ``f = alpha + (f0 - alpha) (1 + cos(pi q)) / 2``, ``q = (wall - t_plateau) / D``, never
+        above the regular schedule ``f_now``; at ``q >= 1`` the run stops. Before the plateau
+        it returns ``f_now`` unchanged. (The regular schedule would anneal only at the end of
+        the budget; a run stopped at a plateau would otherwise end at a high learning rate.)"""
+        if self._cool_start is None:
+            return f_now
+        alpha = self.cfg.train.lr_alpha
+        if self._cool_f0 is None:
+            self._cool_f0 = f_now
+        q = (wall - self._cool_start) / max(self._cool_len, 1e-9)
+        if q >= 1.0:
+            self.stop_requested = True
+            return alpha
+        return min(f_now, alpha + (self._cool_f0 - alpha) * 0.5 * (1.0 + math.cos(math.pi * max(q, 0.0))))
 
     def write_report(self, path: Path, *, step: int, status: str, nonfinite: int) -> dict:
         rep = {"status": status, "step": step, "nonfinite_steps": nonfinite, "decisions": self.decisions,

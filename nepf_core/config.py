@@ -69,6 +69,9 @@ class TrainConfig:
     plateau_min_frac: float = 0.5
     """...and only when those evaluations also span this share of the training time so far
     (``t - t_best >= plateau_min_frac * t``)."""
+    plateau_cooldown_frac: float = 0.1
+    """After the plateau rule fires, anneal the learning rate to ``lr_alpha`` over this share of
+    the training time so far, then stop (0: stop at once)."""
 
 
 @dataclass

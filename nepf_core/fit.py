@@ -363,6 +363,10 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
             warm = step / max(tc.warmup_steps, 1)
             post = (p * total - tc.warmup_steps) / max(total - tc.warmup_steps, 1) if not time_budget_s else p
             f = lr_factor(warm if not time_budget_s else min(warm, 1.0), post, tc.lr_alpha)
+            f = adapt.lr_after_plateau(wall(), f)
+            if adapt.stop_requested:
+                status = "stopped_early"
+                break
             for gparam in optimizer.param_groups:
                 gparam["lr"] = gparam["base_lr"] * f
             anneal = 1.0 if tc.anneal_end <= 0 else min(1.0, (p * total) / tc.anneal_end)

@@ -164,9 +164,10 @@ def test_plateau_early_stop_only_when_iterations_are_free(iters_fixed, enabled, 
     assert cfg.train.plateau_patience == 3
     for step, v in ((100, 20.0), (200, 22.0), (300, 22.05), (400, float("nan")), (500, 21.0)):
         a.on_test_eval(step, {"test_psnr": v})
-    assert not a.stop_requested  # 2 evaluations without a 0.1 dB gain (NaN ignored)
+    assert not a.plateaued  # 2 evaluations without a 0.1 dB gain (NaN ignored)
     a.on_test_eval(600, {"test_psnr": 22.09})
-    assert a.stop_requested is stops
+    assert a.plateaued is stops
+    assert a.stop_requested is stops  # no wall clock in the records: no cool-down, stop at once
     found = _names(a, "early_stop")
     assert bool(found) is stops
     if stops:
@@ -177,7 +178,7 @@ def test_plateau_counter_resets_on_improvement():
     a, _ = _adapt(iters_fixed=False)
     for step, v in enumerate((20.0, 20.0, 20.0, 21.0, 21.05, 21.0), 1):
         a.on_test_eval(step, {"test_psnr": v})
-    assert not a.stop_requested and a._evals_since_best == 2
+    assert not a.plateaued and a._evals_since_best == 2
 
 
 # ---------------------------------------------------------------- data-driven, before training
@@ -296,11 +297,11 @@ def test_plateau_must_span_half_the_training_time():
     a.on_test_eval(2, {"test_psnr": 23.9, "wall_s": 80.0})      # best
     for step, t in ((3, 100.0), (4, 120.0), (5, 140.0)):
         a.on_test_eval(step, {"test_psnr": 23.95, "wall_s": t})  # < 0.1 dB gain
-    assert a._evals_since_best == 3 and not a.stop_requested     # 60 s < 140 / 2
+    assert a._evals_since_best == 3 and not a.plateaued     # 60 s < 140 / 2
     a.on_test_eval(6, {"test_psnr": 23.9, "wall_s": 159.0})
-    assert not a.stop_requested                                  # 79 s < 79.5 s
+    assert not a.plateaued                                  # 79 s < 79.5 s
     a.on_test_eval(7, {"test_psnr": 23.9, "wall_s": 160.0})
-    assert a.stop_requested                                      # 80 s >= 80 s
+    assert a.plateaued                                      # 80 s >= 80 s
     (found,) = _names(a, "early_stop")
     assert found["step"] == 7 and "80 s of 160 s" in found["reason"] and "5 evaluations" in found["reason"]
     # the counters survive a checkpoint round trip
@@ -319,14 +320,77 @@ def test_no_plateau_while_a_grid_sdf_is_still_adding_levels():
     flat = [(k, 24.0, 30.0 * k) for k in range(1, 6)]              # no gain at all, 30 s apart
     for step, v, t in flat:
         a.on_test_eval(step, {"test_psnr": v, "wall_s": t}, progress=0.9 * frac * step / 5)
-    assert not a.stop_requested and not _names(a, "early_stop")
+    assert not a.plateaued and not _names(a, "early_stop")
     # the first evaluation with every level active arms the plateau clock at its own time
     a.on_test_eval(6, {"test_psnr": 24.0, "wall_s": 180.0}, progress=frac)
-    assert not a.stop_requested and a._best_wall == 180.0 and a._evals_since_best == 0
+    assert not a.plateaued and a._best_wall == 180.0 and a._evals_since_best == 0
     for step, t in ((7, 210.0), (8, 240.0), (9, 270.0)):
         a.on_test_eval(step, {"test_psnr": 24.05, "wall_s": t}, progress=t / 600)
-    assert not a.stop_requested                                   # 90 s < 270 / 2
+    assert not a.plateaued                                   # 90 s < 270 / 2
     a.on_test_eval(10, {"test_psnr": 24.0, "wall_s": 360.0}, progress=0.6)
-    assert a.stop_requested                                       # 180 s >= 360 / 2, 4 evaluations
+    assert a.plateaued                                       # 180 s >= 360 / 2, 4 evaluations
     # an MLP SDF (tiny, paper) has no schedule: the plateau counts from the first evaluation
     assert Adaptivity(tiny(), enabled=True, iters_fixed=False).plateau_min_progress() == 0.0
+
+
+def test_plateau_cooldown_anneals_the_learning_rate_then_stops():
+    """After the plateau at 160 s the LR factor follows a cosine from its value then (0.4) to
+    the floor over 10 % of 160 s = 16 s, never above the regular schedule, then the run stops."""
+    a, cfg = _adapt(iters_fixed=False)
+    assert cfg.train.plateau_cooldown_frac == 0.1
+    alpha = cfg.train.lr_alpha
+    assert a.lr_after_plateau(50.0, 0.7) == 0.7            # no plateau yet: schedule unchanged
+    a.on_test_eval(1, {"test_psnr": 23.9, "wall_s": 80.0})
+    for step, t in ((2, 100.0), (3, 120.0), (4, 160.0)):
+        a.on_test_eval(step, {"test_psnr": 23.9, "wall_s": t})
+    assert a.plateaued and not a.stop_requested
+    (found,) = _names(a, "early_stop")
+    assert "over 16 s" in found["reason"]
+    assert a.lr_after_plateau(160.0, 0.4) == pytest.approx(0.4)
+    assert a.lr_after_plateau(164.0, 0.39) == pytest.approx(alpha + (0.4 - alpha) * 0.5 * (1 + math.cos(math.pi / 4)))
+    assert a.lr_after_plateau(168.0, 0.38) == pytest.approx(alpha + (0.4 - alpha) * 0.5)
+    assert a.lr_after_plateau(170.0, 0.01) == 0.01           # the regular schedule is lower
+    assert not a.stop_requested
+    b, _ = _adapt(iters_fixed=False)                         # survives a checkpoint round trip
+    b.load_state(json.loads(json.dumps(a.state())))
+    assert b.lr_after_plateau(176.0, 0.3) == alpha and b.stop_requested
+    assert a.lr_after_plateau(176.0, 0.3) == alpha and a.stop_requested
+
+
+def test_plateau_without_cooldown_stops_at_once():
+    a, cfg = _adapt(iters_fixed=False)
+    cfg.train.plateau_cooldown_frac = 0.0
+    for step, t in ((1, 80.0), (2, 100.0), (3, 120.0), (4, 160.0)):
+        a.on_test_eval(step, {"test_psnr": 23.9, "wall_s": t})
+    assert a.plateaued and a.stop_requested and "stop now" in _names(a, "early_stop")[0]["reason"]
+
+
+# ---------------------------------------------------------------- coarse samples
+def test_coarse_samples_follow_the_occupied_length():
+    cfg = fast()
+    a = Adaptivity(cfg, enabled=True, iters_fixed=False)
+    h = 2.0 / cfg.model.occupancy_resolution                  # 1/32
+    n = cfg.render.n_samples
+    assert a.coarse_samples_for(10.3 * h) == 11               # one sample per cell crossed
+    assert a.coarse_samples_for(0.01) == a.min_coarse_samples == 8
+    assert a.coarse_samples_for(2.0) == n                      # never more than the preset
+    # decisions come from the EMA of the rendered occupied length, every check_every steps
+    for step in range(1, 101):
+        a.on_step(step, SimpleNamespace(weight_sum=torch.ones(4), surf={}, skip_fraction=0.9,
+                                        occupied_length=12.0 * h), _losses())
+    assert cfg.render.n_samples_occupied == 12
+    (d,) = _names(a, "coarse_samples")
+    assert d["value"] == 12 and d["step"] == 100 and "12.0 cells" in d["reason"]
+    assert a.step_stats()["occupied_length"] == pytest.approx(12.0 * h)
+    # small changes (< 4 samples) are not taken: no flapping
+    for step in range(101, 201):
+        a.on_step(step, SimpleNamespace(weight_sum=torch.ones(4), surf={}, skip_fraction=0.9,
+                                        occupied_length=10.0 * h), _losses())
+    assert cfg.render.n_samples_occupied == 12 and len(_names(a, "coarse_samples")) == 1
+    # disabled adaptivity keeps the preset
+    cfg2 = fast()
+    b = Adaptivity(cfg2, enabled=False, iters_fixed=False)
+    for step in range(1, 201):
+        b.on_step(step, SimpleNamespace(weight_sum=torch.ones(4), surf={}, skip_fraction=0.9,
+                                        occupied_length=0.1), _losses())
+    assert cfg2.render.n_samples_occupied == 0 and not _names(b, "coarse_samples")

@@ -68,6 +68,29 @@ def test_partial_update_only_adds_occupancy_for_stale_cells():
     assert grid.occ.sum() >= before.sum()
 
 
+@pytest.mark.parametrize("dilation", [0, 1])
+def test_update_restricted_to_allowed_cells_queries_only_those(dilation):
+    # the visual hull restricts the update: same grid as a full update intersected with the
+    # hull, with the SDF evaluated only at the hull's cells
+    res = 32
+    sdf = lambda x: sphere_sdf(x, 0.5)
+    full = OccupancyGrid(OccupancyConfig(resolution=res, dilation=dilation))
+    full.update(sdf, inv_s=300.0)
+    g = torch.Generator().manual_seed(3)
+    allowed = torch.rand(res, res, res, generator=g) < 0.3
+    seen = []
+    part = OccupancyGrid(OccupancyConfig(resolution=res, dilation=dilation))
+    st = part.update(lambda x: (seen.append(x.shape[0]), sdf(x))[1], inv_s=300.0, allowed=allowed)
+    assert sum(seen) == st["n_evaluated"] == int(allowed.sum())
+    if dilation == 0:
+        assert torch.equal(part.occ, full.occ & allowed)
+    else:
+        assert not (part.occ & ~allowed).any() and (part.occ <= full.occ).all()
+        plain = OccupancyGrid(OccupancyConfig(resolution=res))
+        plain.update(sdf, inv_s=300.0, allowed=allowed)
+        assert (part.occ >= plain.occ).all() and part.occ.sum() > plain.occ.sum()  # dilation still applied
+
+
 def test_dilation_and_nan_safety():
     grid = OccupancyGrid(OccupancyConfig(resolution=32, dilation=1))
     grid.update(lambda x: sphere_sdf(x, 0.5), inv_s=1e4)
@@ -154,3 +177,31 @@ def test_buffers_follow_device_and_state_dict():
         o, d, near, far = make_rays(8, torch.Generator().manual_seed(0))
         rs = gc.sample_along_rays(o.cuda(), d.cuda(), near.cuda(), far.cuda(), 8)
         assert rs.t_vals.device.type == "cuda"
+
+
+def test_renderer_spends_the_adaptive_coarse_sample_count():
+    """``RenderConfig.n_samples_occupied`` sets the coarse samples of the occupancy sampler, and
+    the renderer reports the mean occupied length of the rays that hit (init sphere r = 0.5)."""
+    from nepf_core.config import fast
+    from nepf_core.model import NePFModel
+    from nepf_core.rays import RayBatch
+    from nepf_core.render.renderer import render_rays
+
+    cfg = fast()
+    model = NePFModel(cfg.model)
+    model.occupancy.update(model.sdf.sdf, inv_s=1e4)
+    g = torch.Generator().manual_seed(0)
+    p = torch.randn(16, 3, generator=g)
+    o = 3.0 * p / p.norm(dim=-1, keepdim=True)
+    d = -o / 3.0                                   # every ray passes through the centre
+    rays = RayBatch(o, d, torch.rand(16, 3, generator=g), torch.ones(16), torch.zeros(16, dtype=torch.long))
+    for n in (0, 10):
+        cfg.render.n_samples_occupied = n
+        with torch.no_grad():
+            out = render_rays(model, rays, cfg.render, train=False)
+        per_ray = (n or cfg.render.n_samples) + cfg.render.n_importance
+        assert out.n_samples == 16 * per_ray
+    # each ray crosses the sphere's band twice: at least the 2 cells of each crossing, and far
+    # less than the unit sphere's chord (2)
+    h = model.occupancy.cell_size
+    assert 4 * h * 0.9 <= out.occupied_length < 1.0

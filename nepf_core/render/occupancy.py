@@ -157,23 +157,29 @@ class OccupancyGrid(nn.Module):
         inv_s: float | Tensor,
         step: int | None = None,
         fraction: float = 1.0,
+        allowed: Tensor | None = None,
     ) -> dict:
         """Re-evaluate ``|f|`` at cell centres and rebuild ``occ`` with rule (1).
 
         ``sdf_fn``: ``[M,3] -> [M]`` (called in chunks of ``cfg.chunk``, no grad).
         ``inv_s``: NeuS sharpness ``s`` (float or 0-d tensor). ``fraction < 1``: evaluate a
         random subset of ``ceil(fraction R^3)`` cells (with replacement); the others decay
-        (``|f| *= stale_decay``). ``step`` is informational. Returns
+        (``|f| *= stale_decay``). ``allowed [R,R,R]`` bool (optional, e.g. the masks' visual
+        hull): cells outside it are empty and their SDF is not evaluated (the update then costs
+        ``allowed.sum()`` SDF queries instead of ``R^3``). ``step`` is informational. Returns
         ``{"occupied_fraction", "threshold", "n_evaluated"}``.
         """
         n_cells = self.sdf_abs.numel()
         dev = self.sdf_abs.device
+        keep = None if allowed is None else allowed.reshape(-1).to(dev)
         if fraction >= 1.0 or int(self.n_updates) == 0:
-            idx = torch.arange(n_cells, device=dev)
+            idx = torch.arange(n_cells, device=dev) if keep is None else keep.nonzero(as_tuple=True)[0]
         else:
             idx = torch.randint(0, n_cells, (max(1, math.ceil(fraction * n_cells)),), device=dev)
+            if keep is not None:
+                idx = idx[keep[idx]]
             self.sdf_abs.mul_(self.cfg.stale_decay)
-        vals = []
+        vals = [self.sdf_abs.new_zeros(0)]
         for i in range(0, idx.numel(), self.cfg.chunk):
             c = self.cell_centres(idx[i : i + self.cfg.chunk])
             vals.append(sdf_fn(c).reshape(-1).abs().to(self.sdf_abs.dtype))
@@ -182,10 +188,15 @@ class OccupancyGrid(nn.Module):
         self.sdf_abs[idx] = v
         thr = self.threshold(float(inv_s))
         r = self.cfg.resolution
-        occ = (self.sdf_abs <= thr).view(r, r, r)
+        occ = self.sdf_abs <= thr
+        if keep is not None:
+            occ &= keep
+        occ = occ.view(r, r, r)
         if self.cfg.dilation > 0:
             k = 2 * self.cfg.dilation + 1
             occ = F.max_pool3d(occ[None, None].float(), k, stride=1, padding=self.cfg.dilation)[0, 0] > 0
+            if keep is not None:
+                occ &= keep.view(r, r, r)
         self.occ.copy_(occ)
         self.n_updates += 1
         return {"occupied_fraction": self.occupied_fraction(), "threshold": thr, "n_evaluated": idx.numel()}

@@ -38,6 +38,10 @@ class RenderConfig:
     """Jitter coarse samples during training."""
     sampler: str = "neus"
     """``neus`` (uniform + importance) or ``occupancy`` (occupancy-grid guided)."""
+    n_samples_occupied: int = 0
+    """Occupancy sampler: coarse samples per ray placed in the occupied cells (0: ``n_samples``).
+    Set by adaptivity from the measured occupied length of the rays (report.json,
+    ``coarse_samples``): once the occupied band is thin, fewer samples keep the same spacing."""
     normals: str = "autograd"
     """``autograd`` (double backward) or ``fd`` (central differences, 6 extra SDF calls)."""
     alpha_mode: str = "midpoint"
@@ -107,6 +111,9 @@ class RenderOutput:
     skip_fraction: float | None = None
     """Occupancy sampler only: mean over rays of the fraction of ``[near, far]`` skipped as
     empty space (no samples placed there; 1 for rays that meet no occupied cell)."""
+    occupied_length: float | None = None
+    """Occupancy sampler only: mean over the rays that meet an occupied cell of the length of
+    ``[near, far]`` inside occupied cells, ``(1 - skip) (far - near)`` (normalised units)."""
 
 
 def _expand(t: Tensor, S: int) -> Tensor:
@@ -123,10 +130,13 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     R = o.shape[0]
     near, far, hit = near_far_from_sphere(o, d)
     sdf_only = model.sdf.sdf
-    skip = None
+    skip = occ_len = None
     if cfg.sampler == "occupancy" and getattr(model, "occupancy", None) is not None:
-        rs = model.occupancy.sample_along_rays(o, d, near, far, cfg.n_samples, perturb=train and cfg.perturb)
+        n_coarse = cfg.n_samples_occupied if cfg.n_samples_occupied > 0 else cfg.n_samples
+        rs = model.occupancy.sample_along_rays(o, d, near, far, n_coarse, perturb=train and cfg.perturb)
         z, skip = rs.t_vals, float(rs.skip_fraction.mean())
+        if bool(rs.hit_any.any()):
+            occ_len = float(((1.0 - rs.skip_fraction) * (far - near))[rs.hit_any].mean())
         max_dist = model.occupancy.cell_size  # never let a section span a skipped gap
         z = hierarchical_z(o, d, z, sdf_only, cfg.n_importance, cfg.up_sample_steps,
                            base_inv_s=max(64.0, float(model.deviation().detach())))
@@ -258,4 +268,5 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     depth = (weights * mid).sum(-1)
     return RenderOutput(rgb_r=rgb_r, rgb_vol=rgb_vol, rgb_surf=rgb_surf, weight_sum=weight_sum, w_max=w_max,
                         depth=depth, eikonal=eikonal, hessian=hess, surf=surf, n_samples=int(P),
-                        n_head_evals=int(sel_idx.shape[0]), inv_s=float(inv_s.detach()), skip_fraction=skip)
+                        n_head_evals=int(sel_idx.shape[0]), inv_s=float(inv_s.detach()), skip_fraction=skip,
+                        occupied_length=occ_len)
