@@ -24,7 +24,8 @@ Rules (each decision is logged with its step and reason):
   run): before that the model is still gaining resolution.
 * **Coarse samples.** With the occupancy sampler, every ``check_every`` steps the number of
   coarse samples per ray follows the measured occupied length ``L`` of the rays that hit
-  (EMA): one per cell crossed, ``clamp(ceil(L / h), min_coarse_samples, n_samples)``.
+  (EMA): one per march step (half a cell) crossed,
+  ``clamp(ceil(2 L / h), min_coarse_samples, n_samples)``.
 * **Empty space.** The occupancy grid skips it; with masks, cells outside the visual hull are
   not even queried at a refresh; we report the fraction of cells culled
   (``occupied_fraction``) and the fraction of samples saved (``samples_saved_fraction``:
@@ -56,6 +57,7 @@ class Adaptivity:
     eik_thr = 0.05
     min_gain_db = 0.1
     min_coarse_samples = 8
+    coarse_spacing_cells = 0.5
 
     def __init__(self, cfg, *, enabled: bool, iters_fixed: bool) -> None:
         self.cfg = cfg
@@ -211,11 +213,14 @@ class Adaptivity:
             self.record("specular_lobe", True, f"specular share would be {share:.3%} > {2 * self.spec_thr:.0%}", step)
 
     def coarse_samples_for(self, occupied_length: float) -> int:
-        """One coarse sample per occupancy cell crossed: ``n = clamp(ceil(L / h), n_min, n_samples)``
-        with ``L`` the mean occupied length of the rays that hit and ``h`` the cell size."""
+        """One coarse sample per march step of occupied space crossed:
+        ``n = clamp(ceil(L / (h / 2)), n_min, n_samples)`` with ``L`` the mean occupied length of
+        the rays that hit and ``h`` the cell size (the grid covers ``[-1, 1]^3``; ``h / 2`` is
+        the occupancy march step). Measured: one sample per cell (``L / h``, 16-19 samples on
+        sphere_diffuse) lost 2-3 dB against the 24 of the preset at equal steps."""
         r = self.cfg.render
-        h = 2.0 * 1.0 / max(self.cfg.model.occupancy_resolution, 1)  # the grid covers [-1, 1]^3
-        return int(min(max(math.ceil(occupied_length / h), self.min_coarse_samples), r.n_samples))
+        step = self.coarse_spacing_cells * 2.0 / max(self.cfg.model.occupancy_resolution, 1)
+        return int(min(max(math.ceil(occupied_length / step), self.min_coarse_samples), r.n_samples))
 
     def _decide_coarse_samples(self, step: int) -> None:
         r = self.cfg.render
@@ -225,9 +230,9 @@ class Adaptivity:
         cur = r.n_samples_occupied if r.n_samples_occupied > 0 else r.n_samples
         if n != cur and (abs(n - cur) >= 4 or n in (self.min_coarse_samples, r.n_samples)):
             r.n_samples_occupied = n
-            h = 2.0 / max(self.cfg.model.occupancy_resolution, 1)
+            h = self.coarse_spacing_cells * 2.0 / max(self.cfg.model.occupancy_resolution, 1)
             self.record("coarse_samples", n, f"rays cross {self._occ_len:.3f} of occupied space on average "
-                        f"= {self._occ_len / h:.1f} cells of {h:.4f}: {n} coarse samples per ray in occupied cells "
+                        f"= {self._occ_len / h:.1f} march steps of {h:.4f}: {n} coarse samples per ray in occupied cells "
                         f"(preset {r.n_samples}; the uniform sampler's spacing over the unit sphere would be "
                         f"{2.0 / r.n_samples:.3f})", step)
 

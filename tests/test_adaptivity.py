@@ -369,9 +369,9 @@ def test_plateau_without_cooldown_stops_at_once():
 def test_coarse_samples_follow_the_occupied_length():
     cfg = fast()
     a = Adaptivity(cfg, enabled=True, iters_fixed=False)
-    h = 2.0 / cfg.model.occupancy_resolution                  # 1/32
+    h = 2.0 / cfg.model.occupancy_resolution / 2              # the march step: half a cell, 1/64
     n = cfg.render.n_samples
-    assert a.coarse_samples_for(10.3 * h) == 11               # one sample per cell crossed
+    assert a.coarse_samples_for(10.3 * h) == 11               # one sample per march step crossed
     assert a.coarse_samples_for(0.01) == a.min_coarse_samples == 8
     assert a.coarse_samples_for(2.0) == n                      # never more than the preset
     # decisions come from the EMA of the rendered occupied length, every check_every steps
@@ -380,7 +380,7 @@ def test_coarse_samples_follow_the_occupied_length():
                                         occupied_length=12.0 * h), _losses())
     assert cfg.render.n_samples_occupied == 12
     (d,) = _names(a, "coarse_samples")
-    assert d["value"] == 12 and d["step"] == 100 and "12.0 cells" in d["reason"]
+    assert d["value"] == 12 and d["step"] == 100 and "12.0 march steps" in d["reason"]
     assert a.step_stats()["occupied_length"] == pytest.approx(12.0 * h)
     # small changes (< 4 samples) are not taken: no flapping
     for step in range(101, 201):
