@@ -26,6 +26,9 @@ Rules (each decision is logged with its step and reason):
   coarse samples per ray follows the measured occupied length ``L`` of the rays that hit
   (EMA): one per march step (half a cell) crossed,
   ``clamp(ceil(2 L / h), min_coarse_samples, n_samples)``.
+* **Empty rays.** Drawn rays that meet no occupied cell leave the training batch, except a
+  random ``miss_keep`` share (:meth:`Adaptivity.thin_empty_rays`; reported as
+  ``rays_left_out_fraction``).
 * **Empty space.** The occupancy grid skips it; with masks, cells outside the visual hull are
   not even queried at a refresh; we report the fraction of cells culled
   (``occupied_fraction``) and the fraction of samples saved (``samples_saved_fraction``:
@@ -57,6 +60,7 @@ class Adaptivity:
     eik_thr = 0.05
     min_gain_db = 0.1
     min_coarse_samples = 8
+    miss_keep = 0.1
     coarse_spacing_cells = 0.5
 
     def __init__(self, cfg, *, enabled: bool, iters_fixed: bool) -> None:
@@ -80,6 +84,9 @@ class Adaptivity:
         self._skip_last = None
         self._skip_sum, self._skip_n = 0.0, 0
         self._occ_len = None
+        self._lobe_gain = None
+        self._drop_last = None
+        self._drop_sum, self._drop_n = 0.0, 0
 
     # -- bookkeeping --
     def record(self, decision: str, value, reason: str, step: int = 0) -> None:
@@ -92,7 +99,8 @@ class Adaptivity:
                 "plateau_armed": self._plateau_armed, "plateaued": self.plateaued,
                 "cool": [self._cool_start, self._cool_len, self._cool_f0], "w_hessian": self.cfg.loss.w_hessian,
                 "skip_sum": self._skip_sum, "skip_n": self._skip_n, "occ_len": self._occ_len,
-                "n_samples_occupied": self.cfg.render.n_samples_occupied}
+                "n_samples_occupied": self.cfg.render.n_samples_occupied,
+                "drop_sum": self._drop_sum, "drop_n": self._drop_n}
 
     def load_state(self, s: dict) -> None:
         if not s:
@@ -110,6 +118,7 @@ class Adaptivity:
         self.cfg.loss.w_hessian = s.get("w_hessian", self.cfg.loss.w_hessian)
         self._skip_sum, self._skip_n = s.get("skip_sum", 0.0), s.get("skip_n", 0)
         self._occ_len = s.get("occ_len")
+        self._drop_sum, self._drop_n = s.get("drop_sum", 0.0), s.get("drop_n", 0)
         self.cfg.render.n_samples_occupied = s.get("n_samples_occupied", self.cfg.render.n_samples_occupied)
 
     # -- before training --
@@ -152,6 +161,41 @@ class Adaptivity:
         if hasattr(occ, "occupied_fraction"):
             self._occ_frac = float(occ.occupied_fraction())
 
+    def thin_empty_rays(self, model, rays, step: int, generator: torch.Generator | None = None):
+        """Leave out of the batch the rays that meet no occupied cell, except a random
+        ``miss_keep`` share of them.
+
+        Such a ray crosses only cells where ``|f| > safety (r_h + delta/2) + k_s / s``
+        (occupancy rule (1)), so its opacity is ``<= ~e^{-k_s}`` and rendering it spends
+        ``n_samples + n_importance`` SDF queries (with gradients) on empty space; the share kept
+        lets the mask loss and the eikonal term still see empty space. ``rays`` (``R``) ->
+        the kept :class:`~nepf_core.rays.RayBatch` (``R' <= R``, unchanged order). Only with
+        adaptivity on, an occupancy grid that has been refreshed, and at least 8 rays kept.
+        """
+        occ = getattr(model, "occupancy", None)
+        if not self.enabled or occ is None or int(occ.n_updates) == 0:
+            return rays
+        from nepf_core.render.sampling import near_far_from_sphere
+        near, far, _ = near_far_from_sphere(rays.origins, rays.directions)
+        hit = occ.ray_hits(rays.origins, rays.directions, near, far)
+        u = torch.rand(hit.shape, generator=generator).to(hit.device)
+        keep = hit | (u < self.miss_keep)
+        if int(keep.sum()) < 8 or bool(keep.all()):
+            self._drop_last = 0.0
+            self._drop_sum += 0.0
+            self._drop_n += 1
+            return rays
+        dropped = 1.0 - float(keep.float().mean())
+        self._drop_last = dropped
+        self._drop_sum += dropped
+        self._drop_n += 1
+        if not any(d["decision"] == "empty_rays" for d in self.decisions):
+            self.record("empty_rays", {"left_out_fraction": round(dropped, 4), "miss_keep": self.miss_keep},
+                        f"{1 - float(hit.float().mean()):.1%} of the drawn rays meet no occupied cell (opacity "
+                        f"<= ~e^-{occ.cfg.k_s:g}): they leave the batch except a random {self.miss_keep:.0%}, "
+                        "which keep the mask loss and the eikonal term on empty space", step)
+        return rays.index(keep.nonzero(as_tuple=True)[0])
+
     # -- during training --
     def wants_specular_stats(self, step: int) -> bool:
         return self.enabled and step > 0 and step % self.check_every == 0
@@ -164,6 +208,8 @@ class Adaptivity:
             s["skipped_fraction"] = self._skip_last
         if self._occ_len is not None:
             s["occupied_length"] = self._occ_len
+        if self._drop_last is not None:
+            s["rays_left_out"] = self._drop_last
         return s
 
     def on_step(self, step: int, out, losses: dict) -> None:
@@ -198,6 +244,8 @@ class Adaptivity:
         metal = float(out.surf["metallic"].detach()[surf_w].mean())
         share = float(out.surf["specular"][surf_w].mean())
         self._stats = {"surf_metallic": metal, "specular_share": share}
+        if self._lobe_gain is not None:
+            self._stats["lobe_residual_gain"] = self._lobe_gain
         if self.cfg.render.specular:
             if metal < self.metal_thr and share < self.spec_thr:
                 self._diffuse_streak += 1
@@ -235,6 +283,23 @@ class Adaptivity:
                         f"= {self._occ_len / h:.1f} march steps of {h:.4f}: {n} coarse samples per ray in occupied cells "
                         f"(preset {r.n_samples}; the uniform sampler's spacing over the unit sphere would be "
                         f"{2.0 / r.n_samples:.3f})", step)
+
+    @staticmethod
+    def lobe_residual_gain(rgb_surf: torch.Tensor, diffuse_only: torch.Tensor, target: torch.Tensor) -> float:
+        """What the GGX lobe explains, on surface rays ``[N, 3]``: ``g = E_d / E - 1`` with
+        ``E = mean |c_surf - t|^2`` (diffuse + lobe) and ``E_d = min_{k >= 0} mean |k c_d - t|^2``
+        (diffuse only, best per-channel gain ``k_c = max(0, <c_d, t>_c / <c_d, c_d>_c)``, which
+        stands for what the albedo could absorb). ``g <= 0``: the lobe adds nothing a brighter
+        diffuse could not; ``g = 0.3``: without it the surface error would be 30 % higher."""
+        k = ((diffuse_only * target).sum(0) / (diffuse_only * diffuse_only).sum(0).clamp_min(1e-12)).clamp_min(0)
+        e = ((rgb_surf - target) ** 2).mean()
+        e_d = ((k * diffuse_only - target) ** 2).mean()
+        return float(e_d / e.clamp_min(1e-12) - 1.0)
+
+    def on_lobe_residual(self, gain: float) -> None:
+        """Record this check's :meth:`lobe_residual_gain` (logged as ``lobe_residual_gain``)."""
+        if math.isfinite(gain):
+            self._lobe_gain = gain
 
     def on_highlight_residual(self, step: int, ratio: float) -> None:
         if self.enabled and not self.cfg.render.specular and ratio > self.highlight_ratio:
@@ -306,11 +371,24 @@ class Adaptivity:
         return min(f_now, alpha + (self._cool_f0 - alpha) * 0.5 * (1.0 + math.cos(math.pi * max(q, 0.0))))
 
     def write_report(self, path: Path, *, step: int, status: str, nonfinite: int) -> dict:
+        if self.enabled and self.cfg.render.specular and self._stats and \
+                not any(d["decision"] == "specular_lobe" for d in self.decisions):
+            st = self._stats
+            gain = st.get("lobe_residual_gain")
+            self.record("specular_lobe", True, "kept: at the last check the mean surface metallic was "
+                        f"{st['surf_metallic']:.3f} (drop below {self.metal_thr}), the lobe's share of L_surf "
+                        f"{st['specular_share']:.1%} (drop below {self.spec_thr:.0%})"
+                        + ("" if gain is None else f", and without it the surface error would be {gain:+.0%}"),
+                        step)
         rep = {"status": status, "step": step, "nonfinite_steps": nonfinite, "decisions": self.decisions,
                "final_switches": {"specular": self.cfg.render.specular, "mask_loss": self.use_mask_loss,
                                   "background": self.cfg.model.background, "w_hessian": self.cfg.loss.w_hessian}}
         if self._occ_frac is not None:
             rep["occupied_fraction"] = self._occ_frac
+        if self._drop_n:
+            rep["rays_left_out_fraction"] = self._drop_sum / self._drop_n
+            rep["rays_left_out_note"] = ("mean over training steps of the share of drawn rays left out of the batch "
+                                         "because they meet no occupied cell (a random miss_keep share of those stays)")
         if self._skip_n:
             rep["samples_saved_fraction"] = self._skip_sum / self._skip_n
             rep["samples_saved_note"] = ("mean over training steps and rays of the share of each ray's [near, far] in "

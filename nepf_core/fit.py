@@ -378,6 +378,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
             rays = sampler.sample(batch, generator=gen)
             if unlit_thr is not None:
                 rays.unlit = rays.rgb.amax(-1) < unlit_thr
+            rays = adapt.thin_empty_rays(model, rays, step, generator=gen)
             need_extras = adapt.wants_specular_stats(step)
             cfg.render.amp_heads = bool(tc.amp and dev.type == "cuda")
             out = render_rays(model, rays, cfg.render, train=True, cos_anneal=anneal, generator=gen,
@@ -401,15 +402,19 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
             step += 1
             n_rays_acc += len(rays)
             n_samp_acc += out.n_samples
-            adapt.on_step(step, out, losses)
             if need_extras and rays.rgb is not None:
                 with torch.no_grad():
                     err = (out.rgb_vol.detach() - rays.rgb).abs().mean(-1)
                     fgm = (rays.mask > 0.5) if rays.mask is not None else (out.weight_sum.detach() > 0.5)
+                    on_surf = fgm & (out.weight_sum.detach() > 0.5)
+                    if cfg.render.specular and "diffuse_only" in out.surf and int(on_surf.sum()) >= 8:
+                        adapt.on_lobe_residual(adapt.lobe_residual_gain(
+                            out.rgb_surf.detach()[on_surf], out.surf["diffuse_only"][on_surf], rays.rgb[on_surf]))
                     err, lum = err[fgm], rays.rgb.mean(-1)[fgm]
                     top = lum >= torch.quantile(lum, 0.95) if lum.numel() >= 20 else lum > 1e9
                     if top.sum() > 0:
                         adapt.on_highlight_residual(step, float(err[top].mean() / err.median().clamp_min(1e-4)))
+            adapt.on_step(step, out, losses)   # after the checks above, whose statistics it logs
             if tc.target_samples > 0 and out.n_head_evals > 0:
                 ratio = tc.target_samples / out.n_head_evals
                 batch = int(min(max(batch * min(max(ratio, 0.8), 1.25), 128), 8 * tc.batch_rays))

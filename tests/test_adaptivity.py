@@ -394,3 +394,83 @@ def test_coarse_samples_follow_the_occupied_length():
         b.on_step(step, SimpleNamespace(weight_sum=torch.ones(4), surf={}, skip_fraction=0.9,
                                         occupied_length=0.1), _losses())
     assert cfg2.render.n_samples_occupied == 0 and not _names(b, "coarse_samples")
+
+
+# ---------------------------------------------------------------- what the lobe explains
+def test_lobe_residual_gain_hand_values():
+    d = torch.ones(2, 3)
+    t = torch.tensor([[1.0] * 3, [3.0] * 3])
+    # best gain k = (1 + 3) / (1 + 1) = 2: E_d = mean((2-1)^2, (2-3)^2) = 1; E = mean(0, 0.5^2) = 0.125
+    full = torch.tensor([[1.0] * 3, [2.5] * 3])
+    assert Adaptivity.lobe_residual_gain(full, d, t) == pytest.approx(1 / 0.125 - 1)
+    # the lobe only adds a uniform brightness the albedo can absorb: g = 0 / E - 1 = -1
+    t2 = 0.5 * d
+    assert Adaptivity.lobe_residual_gain(0.5 * d + 0.1, d, t2) == pytest.approx(-1.0)
+    # the gain is never negative: black targets -> k = 0, E_d = 0 -> g = -1
+    assert Adaptivity.lobe_residual_gain(d * 0.1, d, torch.zeros(2, 3)) == pytest.approx(-1.0)
+
+
+def test_kept_specular_lobe_is_reported_with_its_numbers(tmp_path):
+    a, cfg = _adapt(iters=1000)
+    a.on_lobe_residual(0.3)
+    for step in range(1, 301):
+        a.on_step(step, _out(share=0.1, metallic=0.5), _losses())
+    assert a.step_stats()["lobe_residual_gain"] == pytest.approx(0.3)
+    rep = a.write_report(tmp_path / "report.json", step=300, status="succeeded", nonfinite=0)
+    (d,) = [x for x in rep["decisions"] if x["decision"] == "specular_lobe"]
+    assert d["value"] is True and "kept" in d["reason"] and "0.500" in d["reason"] and "+30%" in d["reason"]
+    # a dropped lobe gets no extra "kept" record
+    b, _ = _adapt(iters=1000)
+    for step in range(1, 501):
+        b.on_step(step, _out(share=0.0, metallic=0.0), _losses())
+    rep = b.write_report(tmp_path / "r2.json", step=500, status="succeeded", nonfinite=0)
+    assert [x["value"] for x in rep["decisions"] if x["decision"] == "specular_lobe"] == [False]
+
+
+# ---------------------------------------------------------------- empty rays
+def _sphere_model_and_rays(n_hit=24, n_miss=40):
+    """fast model whose occupancy grid holds the init sphere (r = 0.5): rays from distance 3
+    towards the centre hit it, rays pointing away miss every occupied cell."""
+    from nepf_core.model import NePFModel
+    from nepf_core.rays import RayBatch
+    cfg = fast()
+    model = NePFModel(cfg.model)
+    model.occupancy.update(model.sdf.sdf, inv_s=1e4)
+    g = torch.Generator().manual_seed(0)
+    p = torch.nn.functional.normalize(torch.randn(n_hit + n_miss, 3, generator=g), dim=-1)
+    o = 3.0 * p
+    d = torch.cat([-p[:n_hit], p[n_hit:]])
+    n = n_hit + n_miss
+    rays = RayBatch(o, d, torch.rand(n, 3, generator=g), (torch.arange(n) < n_hit).float(),
+                    torch.arange(n), torch.zeros(n, dtype=torch.bool))
+    return cfg, model, rays
+
+
+def test_rays_that_meet_no_occupied_cell_leave_the_batch(tmp_path):
+    cfg, model, rays = _sphere_model_and_rays()
+    a = Adaptivity(cfg, enabled=True, iters_fixed=False)
+    a.miss_keep = 0.0
+    kept = a.thin_empty_rays(model, rays, step=0, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(kept.view, torch.arange(24))            # exactly the hits, in order
+    assert torch.equal(kept.mask, rays.mask[:24]) and kept.unlit.shape == (24,)
+    (d,) = _names(a, "empty_rays")
+    assert d["value"]["left_out_fraction"] == pytest.approx(40 / 64, abs=1e-4) and "62.5%" in d["reason"]
+    assert a.step_stats()["rays_left_out"] == pytest.approx(40 / 64)
+    # a random share of the misses stays: about miss_keep of them, the hits always
+    a.miss_keep = 0.5
+    n_kept = [len(a.thin_empty_rays(model, rays, step=s, generator=torch.Generator().manual_seed(s)))
+              for s in range(1, 41)]
+    assert min(n_kept) >= 24 and 24 + 0.35 * 40 < sum(n_kept) / len(n_kept) < 24 + 0.65 * 40
+    assert len(_names(a, "empty_rays")) == 1                   # recorded once
+    rep = a.write_report(tmp_path / "report.json", step=41, status="succeeded", nonfinite=0)
+    assert 0 < rep["rays_left_out_fraction"] < 1
+
+
+def test_empty_rays_stay_without_adaptivity_or_before_the_first_refresh():
+    cfg, model, rays = _sphere_model_and_rays()
+    off = Adaptivity(cfg, enabled=False, iters_fixed=False)
+    assert off.thin_empty_rays(model, rays, step=0) is rays
+    from nepf_core.model import NePFModel
+    fresh = NePFModel(cfg.model)                                # never refreshed: everything occupied
+    on = Adaptivity(cfg, enabled=True, iters_fixed=False)
+    assert on.thin_empty_rays(fresh, rays, step=0) is rays and not _names(on, "empty_rays")

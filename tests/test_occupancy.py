@@ -205,3 +205,15 @@ def test_renderer_spends_the_adaptive_coarse_sample_count():
     # less than the unit sphere's chord (2)
     h = model.occupancy.cell_size
     assert 4 * h * 0.9 <= out.occupied_length < 1.0
+
+
+def test_ray_hits_equals_the_samplers_hit_flags():
+    grid = OccupancyGrid(OccupancyConfig(resolution=32))
+    grid.update(lambda x: sphere_sdf(x - torch.tensor([0.2, 0.0, -0.1]), 0.3), inv_s=1e3)
+    g = torch.Generator().manual_seed(5)
+    o = 3.0 * torch.nn.functional.normalize(torch.randn(256, 3, generator=g), dim=-1)
+    d = torch.nn.functional.normalize(-o + 0.8 * torch.randn(256, 3, generator=g), dim=-1)
+    near, far = torch.full((256,), 1.0), torch.full((256,), 5.0)
+    hits = grid.ray_hits(o, d, near, far)
+    assert torch.equal(hits, grid.sample_along_rays(o, d, near, far, 8).hit_any)
+    assert 0 < int(hits.sum()) < 256

@@ -202,6 +202,29 @@ class OccupancyGrid(nn.Module):
         return {"occupied_fraction": self.occupied_fraction(), "threshold": thr, "n_evaluated": idx.numel()}
 
     # -- sampling -------------------------------------------------------------------
+    def _march(self, rays_o: Tensor, rays_d: Tensor, near: Tensor, far: Tensor, n_march: int | None):
+        """Steps 1-2 of :meth:`sample_along_rays`: ``(edges [B, M+1], occupied w [B, M] bool,
+        t0 [B], t1 [B], s [M+1])``."""
+        t_in, t_out = ray_aabb(rays_o, rays_d, self.cfg.bound)
+        t0 = torch.maximum(near, t_in)
+        t1 = torch.minimum(far, t_out)
+        valid = t1 > t0
+        t1 = torch.where(valid, t1, t0)
+        m = n_march or math.ceil(2.0 * math.sqrt(3.0) * self.cfg.bound / self.march_step)
+        s = torch.linspace(0.0, 1.0, m + 1, device=rays_o.device, dtype=rays_o.dtype)
+        edges = t0[:, None] + (t1 - t0)[:, None] * s  # [B, M+1]
+        mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
+        pts = rays_o[:, None, :] + rays_d[:, None, :] * mids[..., None]
+        w = self.occupied_at(pts) & valid[:, None]  # [B, M]
+        return edges, w, t0, t1, s
+
+    @torch.no_grad()
+    def ray_hits(self, rays_o: Tensor, rays_d: Tensor, near: Tensor, far: Tensor,
+                 n_march: int | None = None) -> Tensor:
+        """``[B]`` bool: the ray crosses at least one occupied march segment in ``[near, far]``
+        (the same march as :meth:`sample_along_rays`, whose ``hit_any`` it equals)."""
+        return self._march(rays_o, rays_d, near, far, n_march)[1].any(1)
+
     @torch.no_grad()
     def sample_along_rays(
         self,
@@ -237,17 +260,8 @@ class OccupancyGrid(nn.Module):
         """
         b = rays_o.shape[0]
         dev, dt = rays_o.device, rays_o.dtype
-        t_in, t_out = ray_aabb(rays_o, rays_d, self.cfg.bound)
-        t0 = torch.maximum(near, t_in)
-        t1 = torch.minimum(far, t_out)
-        valid = t1 > t0
-        t1 = torch.where(valid, t1, t0)
-        m = n_march or math.ceil(2.0 * math.sqrt(3.0) * self.cfg.bound / self.march_step)
-        s = torch.linspace(0.0, 1.0, m + 1, device=dev, dtype=dt)
-        edges = t0[:, None] + (t1 - t0)[:, None] * s  # [B, M+1]
-        mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
-        pts = rays_o[:, None, :] + rays_d[:, None, :] * mids[..., None]
-        w = self.occupied_at(pts) & valid[:, None]  # [B, M]
+        edges, w, t0, t1, s = self._march(rays_o, rays_d, near, far, n_march)
+        m = w.shape[1]
         hit = w.any(1)
         seg_len = (t1 - t0) / m
         skip = 1.0 - (w.sum(1).to(dt) * seg_len) / (far - near).clamp_min(1e-12)

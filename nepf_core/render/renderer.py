@@ -104,7 +104,8 @@ class RenderOutput:
     """``sum_i |H_ii|`` on a subset of samples, ``[Q]`` (may be empty)."""
     surf: dict = field(default_factory=dict)
     """At the max-weight sample: x, normal, light_dir, intensity, albedo, roughness,
-    metallic, specular (share of L_surf from the specular lobe, no grad)."""
+    metallic; with ``need_surface_extras`` also (no grad) specular (share of L_surf from the
+    specular lobe), specular_abs and diffuse_only (``[R, 3]``, L_surf without the lobe)."""
     n_samples: int = 0
     n_head_evals: int = 0
     inv_s: float = 0.0
@@ -265,6 +266,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
             total = rgb_surf.detach().sum(-1)
             surf["specular"] = ((total - diffuse_only.sum(-1)).clamp_min(0) / total.clamp_min(1e-6))
             surf["specular_abs"] = (rgb_surf.detach() - diffuse_only).clamp_min(0).mean(-1)
+            surf["diffuse_only"] = diffuse_only
     depth = (weights * mid).sum(-1)
     return RenderOutput(rgb_r=rgb_r, rgb_vol=rgb_vol, rgb_surf=rgb_surf, weight_sum=weight_sum, w_max=w_max,
                         depth=depth, eikonal=eikonal, hessian=hess, surf=surf, n_samples=int(P),
