@@ -17,7 +17,7 @@ Definitions (also written into ``table.md``):
 * **fast vs paper**: P = the best test PSNR ``paper`` reached; times of both and
   ratio = t_paper / t_fast (> 1: fast gets there sooner).
 * **adaptive vs a baseline** (``all_on``: everything on, no empty-space skipping;
-  ``all_on_occ``: everything on except that the occupancy grid still skips empty space):
+  ``all_on_occ``: everything on, with the occupancy-guided sampler skipping empty space inside rays):
   P = min(final_adaptive, final_baseline); times of both, the final PSNR difference
   (adaptive - baseline) and time saved = (t_baseline - t_adaptive) / t_baseline.
 * With ``--repeats N`` > 1 every number is the median over repeats (pairs are matched by
@@ -287,8 +287,8 @@ def write_table(results: dict, summary: dict, path: Path) -> None:
     if summary["adaptive_vs_all_on"]:
         L += ["## adaptive vs everything-on baselines: time to reach the same test PSNR", "",
               "Baselines: `all_on` = adaptivity off and no empty-space skipping (NeuS coarse-to-fine sampler, "
-              "same sample counts); `all_on_occ` = adaptivity off but the occupancy grid still skips empty "
-              "space (only the visual-hull, specular-lobe and plateau decisions differ).", "",
+              "same sample counts); `all_on_occ` = adaptivity off, samples placed by the occupancy-guided sampler "
+              "in occupied cells only.", "",
               "| scene | config | baseline | target (dB) | final adaptive | final baseline | diff (dB) | "
               "t adaptive (s) | t baseline (s) | time saved | s/step adaptive / baseline | "
               "Chamfer adaptive / baseline | albedo adaptive / baseline | adaptive decisions |",

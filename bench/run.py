@@ -41,8 +41,9 @@ VARIANTS = {
     # everything on: no decision is taken, and no empty space is skipped (NeuS coarse + importance
     # sampling with the preset's sample counts, no occupancy grid to maintain)
     "all_on": {"train.adaptive": False, "render.sampler": "neus", "model.occupancy_resolution": 0},
-    # everything on except empty-space skipping: isolates the visual-hull, specular and plateau decisions
-    "all_on_occ": {"train.adaptive": False},
+    # everything on, but empty space skipped inside each ray by the occupancy-guided sampler
+    # (the fast preset's sampler until the ray thinning replaced it)
+    "all_on_occ": {"train.adaptive": False, "render.sampler": "occupancy"},
 }
 
 
@@ -280,7 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="real data: views 0, K, 2K, ... are held out for testing (default 8)")
     p.add_argument("--configs", default="fast,paper", help="comma-separated presets (paper, fast, tiny)")
     p.add_argument("--variants", default="adaptive", help="comma-separated: adaptive (default), all_on (everything on, no "
-                   "empty-space skipping), all_on_occ (everything on, occupancy grid kept)")
+                   "empty-space skipping), all_on_occ (everything on, occupancy-guided sampler)")
     p.add_argument("--budget", type=float, default=600.0, help="training seconds per run (default 600)")
     p.add_argument("--budget-for", action="append", default=[], metavar="CONFIG=S",
                    help="per-config budget, e.g. paper=1800 (repeatable or comma-separated)")

@@ -134,8 +134,13 @@ class Adaptivity:
             self.record("mask_loss", False, "the dataset has no masks: no mask loss")
             self.record("background_model", True, "no masks: a background radiance B(d) explains non-object pixels")
         if self.cfg.model.occupancy_resolution > 0:
-            self.record("empty_space_skipping", True,
-                        f"occupancy grid {self.cfg.model.occupancy_resolution}^3 refreshed from the SDF during training")
+            how = ("the occupancy sampler places samples in occupied cells only"
+                   if self.cfg.render.sampler == "occupancy" else
+                   "rays that meet no occupied cell leave the training batch" if self.enabled else
+                   "the grid is maintained but not used (adaptivity off)")
+            self.record("empty_space_skipping", self.enabled or self.cfg.render.sampler == "occupancy",
+                        f"occupancy grid {self.cfg.model.occupancy_resolution}^3 refreshed from the SDF during "
+                        f"training: {how}")
         if not self.enabled:
             self.record("adaptive", False, "adaptivity disabled: every term stays on")
 
@@ -170,10 +175,15 @@ class Adaptivity:
         ``n_samples + n_importance`` SDF queries (with gradients) on empty space; the share kept
         lets the mask loss and the eikonal term still see empty space. ``rays`` (``R``) ->
         the kept :class:`~nepf_core.rays.RayBatch` (``R' <= R``, unchanged order). Only with
-        adaptivity on, an occupancy grid that has been refreshed, and at least 8 rays kept.
+        adaptivity on, an occupancy grid that has been refreshed, the ``neus`` sampler (which
+        spreads a kept ray's samples over its whole chord, so a surface outside the occupied
+        cells is still found and then makes its cells occupied), and at least 8 rays kept.
         """
         occ = getattr(model, "occupancy", None)
-        if not self.enabled or occ is None or int(occ.n_updates) == 0:
+        if not self.enabled or occ is None or int(occ.n_updates) == 0 or self.cfg.render.sampler != "neus":
+            # the occupancy sampler puts a hit ray's samples in occupied cells only, so a surface
+            # outside them is found through the uniform samples of the rays that miss: thinning
+            # those collapsed spot_textured (13 dB at 210 s, mask loss stuck near 0.5)
             return rays
         from nepf_core.render.sampling import near_far_from_sphere
         near, far, _ = near_far_from_sphere(rays.origins, rays.directions)

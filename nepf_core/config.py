@@ -128,7 +128,9 @@ def tiny() -> NePFConfig:
 
 
 def fast() -> NePFConfig:
-    """Grid SDF + small heads + occupancy-guided samples + finite-difference normals, and two
+    """Grid SDF + small heads + finite-difference normals + an occupancy grid (rays that meet no
+    occupied cell leave the training batch; NeuS coarse + importance samples on the others: the
+    occupancy-guided sampler, ``render.sampler="occupancy"``, measured worse, docs/FAST.md), and two
     albedo priors the paper does not have: unlit pixels do not train the albedo, and a small
     albedo smoothness term (docs/FAST.md, "Albedo in unlit regions"; the opt-in material
     switches measured in "Why the spot_textured albedo is constant" are off here)."""
@@ -138,7 +140,7 @@ def fast() -> NePFConfig:
         model=ModelConfig(sdf_kind="grid", radiance=head, photon=HeadConfig(width=64, depth=2, n_freqs_x=2,
                                                                            use_feature=False),
                           material=HeadConfig(width=64, depth=2), occupancy_resolution=64),
-        render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1, sampler="occupancy",
+        render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1, sampler="neus",
                             normals="fd", alpha_mode="sample", head_weight_threshold=1e-4,
                             eikonal_fraction=0.1, unlit_albedo_stopgrad=True, albedo_smooth_sigma=0.02),
         loss=LossConfig(w_hessian=0.0, w_albedo_smooth=2e-4),

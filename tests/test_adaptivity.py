@@ -249,8 +249,8 @@ def test_fit_without_masks_uses_background_and_no_mask_loss(tmp_path):
     assert model.background is not None  # the saved config rebuilds the background model
 
 
-@pytest.mark.parametrize("adaptive", [True, False])
-def test_fast_fit_with_masks_carves_the_visual_hull_and_reports_samples_saved(tmp_path, adaptive):
+@pytest.mark.parametrize("adaptive,sampler", [(True, "neus"), (True, "occupancy"), (False, "neus")])
+def test_fast_fit_with_masks_carves_the_visual_hull_and_reports_samples_saved(tmp_path, adaptive, sampler):
     from nepf_core.data.detect import load_scene
     from nepf_core.data.synth import make_scene
     from nepf_core.fit import fit
@@ -264,6 +264,7 @@ def test_fast_fit_with_masks_carves_the_visual_hull_and_reports_samples_saved(tm
     cfg.train.iters, cfg.train.batch_rays, cfg.train.log_every = 6, 64, 2
     cfg.train.sync_every, cfg.train.eval_every_s, cfg.train.occupancy_every = 0, 0.0, 3
     cfg.train.adaptive = adaptive
+    cfg.render.sampler = sampler
     run = tmp_path / "run"
     fit(scene, run, cfg, device="cpu")
     rep = json.loads((run / "report.json").read_text())
@@ -277,15 +278,23 @@ def test_fast_fit_with_masks_carves_the_visual_hull_and_reports_samples_saved(tm
     assert dec["empty_space_skipping"]["value"] is True
     assert dec["visual_hull"]["value"] is True and "culled" in dec["visual_hull"]["reason"]
     assert 0.0 < rep["occupied_fraction"] < 1.0
-    assert 0.0 < rep["samples_saved_fraction"] < 1.0 and rep["samples_saved_note"]
     train = [r for r in _records(run) if r["kind"] == "train"]
-    assert train and all(0.0 <= r["skipped_fraction"] <= 1.0 for r in train)
+    if sampler == "occupancy":   # skipping inside each ray; every drawn ray is rendered
+        assert 0.0 < rep["samples_saved_fraction"] < 1.0 and rep["samples_saved_note"]
+        assert train and all(0.0 <= r["skipped_fraction"] <= 1.0 for r in train)
+        assert "rays_left_out_fraction" not in rep and "empty_rays" not in dec
+        assert all(r["batch_rays"] == cfg.train.batch_rays for r in train)
+    else:                        # the preset: rays that meet no occupied cell leave the batch
+        assert "samples_saved_fraction" not in rep
+        assert 0.0 < rep["rays_left_out_fraction"] < 1.0 and rep["rays_left_out_note"]
+        assert "no occupied cell" in dec["empty_rays"]["reason"]
+        assert train and all(0.0 <= r["rays_left_out"] < 1.0 for r in train)
+        assert any(r["batch_rays"] < cfg.train.batch_rays for r in train)
     # no samples outside the mask bounds: the occupancy grid never exceeds the visual hull
     ck = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)["model"]
     hull, occ = ck["hull"], ck["occupancy.occ"]
     assert 0.0 < hull.float().mean() < 1.0
     assert not (occ & ~hull).any()
-    assert math.isfinite(rep["samples_saved_fraction"])
 
 
 def test_plateau_must_span_half_the_training_time():
@@ -368,6 +377,7 @@ def test_plateau_without_cooldown_stops_at_once():
 # ---------------------------------------------------------------- coarse samples
 def test_coarse_samples_follow_the_occupied_length():
     cfg = fast()
+    cfg.render.sampler = "occupancy"                          # the rule belongs to the occupancy sampler
     a = Adaptivity(cfg, enabled=True, iters_fixed=False)
     h = 2.0 / cfg.model.occupancy_resolution / 2              # the march step: half a cell, 1/64
     n = cfg.render.n_samples
@@ -389,6 +399,7 @@ def test_coarse_samples_follow_the_occupied_length():
     assert cfg.render.n_samples_occupied == 12 and len(_names(a, "coarse_samples")) == 1
     # disabled adaptivity keeps the preset
     cfg2 = fast()
+    cfg2.render.sampler = "occupancy"
     b = Adaptivity(cfg2, enabled=False, iters_fixed=False)
     for step in range(1, 201):
         b.on_step(step, SimpleNamespace(weight_sum=torch.ones(4), surf={}, skip_fraction=0.9,

@@ -132,13 +132,13 @@ def test_comparisons_arithmetic():
 
 
 def test_variants_build_their_baselines():
-    """`all_on` samples without any empty-space skipping, `all_on_occ` keeps the occupancy grid;
+    """`all_on` samples without any empty-space skipping, `all_on_occ` uses the occupancy sampler;
     both switch adaptivity off; `adaptive` changes nothing in the preset."""
     from bench.run import VARIANTS
     from nepf_core.config import fast
     from nepf_core.jobs import build_config
     base = fast()
-    assert base.render.sampler == "occupancy" and base.model.occupancy_resolution > 0 and base.train.adaptive
+    assert base.render.sampler == "neus" and base.model.occupancy_resolution > 0 and base.train.adaptive
     on = build_config("fast", None, VARIANTS["all_on"])
     assert on.render.sampler == "neus" and on.model.occupancy_resolution == 0 and not on.train.adaptive
     occ = build_config("fast", None, VARIANTS["all_on_occ"])

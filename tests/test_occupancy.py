@@ -188,6 +188,7 @@ def test_renderer_spends_the_adaptive_coarse_sample_count():
     from nepf_core.render.renderer import render_rays
 
     cfg = fast()
+    cfg.render.sampler = "occupancy"
     model = NePFModel(cfg.model)
     model.occupancy.update(model.sdf.sdf, inv_s=1e4)
     g = torch.Generator().manual_seed(0)
