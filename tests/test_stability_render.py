@@ -37,7 +37,7 @@ SDF_FORCE = {
     "plain": (1.0, 0.0),           # the untouched init sphere (radius 0.5)
 }
 INV_S = [1.0, 1e3, 1e6]
-MODES = ["paper", "fast"]
+MODES = ["paper", "fast", "fast_occ"]  # fast_occ: the fast preset with the occupancy-guided sampler
 WSUM_TOL = 1e-5
 
 
@@ -71,6 +71,8 @@ def _cfg(mode: str):
     cfg.model.sdf_grid = {"base_resolution": 8, "max_resolution": 32}
     cfg.model.occupancy_resolution = 16
     cfg.model.radiance.width = cfg.model.photon.width = cfg.model.material.width = 32
+    if mode == "fast_occ":
+        cfg.render.sampler = "occupancy"
     return cfg
 
 
