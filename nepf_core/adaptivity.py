@@ -173,7 +173,9 @@ class Adaptivity:
         Such a ray crosses only cells where ``|f| > safety (r_h + delta/2) + k_s / s``
         (occupancy rule (1)), so its opacity is ``<= ~e^{-k_s}`` and rendering it spends
         ``n_samples + n_importance`` SDF queries (with gradients) on empty space; the share kept
-        lets the mask loss and the eikonal term still see empty space. ``rays`` (``R``) ->
+        lets the mask loss and the eikonal term still see empty space; the kept misses get the
+        importance weight ``RayBatch.weight = 1 / miss_keep`` in the mask loss, so its expectation
+        is the mean over the drawn batch (hits weigh 1). ``rays`` (``R``) ->
         the kept :class:`~nepf_core.rays.RayBatch` (``R' <= R``, unchanged order). Only with
         adaptivity on, an occupancy grid that has been refreshed, the ``neus`` sampler (which
         spreads a kept ray's samples over its whole chord, so a surface outside the occupied
@@ -204,7 +206,11 @@ class Adaptivity:
                         f"{1 - float(hit.float().mean()):.1%} of the drawn rays meet no occupied cell (opacity "
                         f"<= ~e^-{occ.cfg.k_s:g}): they leave the batch except a random {self.miss_keep:.0%}, "
                         "which keep the mask loss and the eikonal term on empty space", step)
-        return rays.index(keep.nonzero(as_tuple=True)[0])
+        kept = rays.index(keep.nonzero(as_tuple=True)[0])
+        # the mask loss stays an unbiased estimate of its mean over the drawn batch: each kept
+        # miss stands for 1 / miss_keep misses
+        kept.weight = torch.where(hit[keep], 1.0, 1.0 / max(self.miss_keep, 1e-12)).to(rays.origins.dtype)
+        return kept
 
     # -- during training --
     def wants_specular_stats(self, step: int) -> bool:

@@ -100,9 +100,14 @@ def light_variance_loss(x: Tensor, n: Tensor, l: Tensor, I: Tensor, l3: float, l
     return l3 * (vx - vI).abs() + l4 * (vn - vl).abs() + l5 * (vx - vl).abs()
 
 
-def mask_bce(weight_sum: Tensor, mask: Tensor) -> Tensor:
-    """``BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)``, finite for any weight sum."""
-    return F.binary_cross_entropy(weight_sum.clip(1e-3, 1.0 - 1e-3), mask)
+def mask_bce(weight_sum: Tensor, mask: Tensor, ray_weight: Tensor | None = None) -> Tensor:
+    """``BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)``, finite for any weight sum: ``[R], [R] -> []``.
+
+    With ``ray_weight`` ``[R]`` (importance weights ``q_r``): ``sum_r q_r BCE_r / sum_r q_r``."""
+    bce = F.binary_cross_entropy(weight_sum.clip(1e-3, 1.0 - 1e-3), mask, reduction="none")
+    if ray_weight is None:
+        return bce.mean()
+    return (bce * ray_weight).sum() / ray_weight.sum().clamp_min(1e-12)
 
 
 def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool) -> dict[str, Tensor]:
@@ -152,7 +157,8 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool) -> d
         L["loss_metallic"] = (out.surf["metallic"].reshape(-1) * keep).sum() / keep.sum().clamp_min(1.0)
     else:
         L["loss_metallic"] = zero
-    L["loss_mask"] = mask_bce(out.weight_sum, rays.mask) if (use_mask and rays.mask is not None and cfg.w_mask > 0) else zero
+    L["loss_mask"] = (mask_bce(out.weight_sum, rays.mask, rays.weight)
+                      if (use_mask and rays.mask is not None and cfg.w_mask > 0) else zero)
     L["loss"] = (cfg.w_r * L["loss_r"] + cfg.lambda1_surf * L["loss_surf"] + cfg.lambda2_vol * L["loss_vol"]
                  + cfg.w_eikonal * L["loss_eik"] + cfg.w_hessian * L["loss_hess"]
                  + cfg.w_light * L["loss_light"] + cfg.w_mask * L["loss_mask"]

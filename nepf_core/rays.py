@@ -34,6 +34,9 @@ class RayBatch:
     view: Tensor | None = None
     unlit: Tensor | None = None
     """``[R]`` bool, training only: the target pixel is unlit (see ``unlit_threshold``)."""
+    weight: Tensor | None = None
+    """``[R]`` float, training only: importance weight of the ray in per-ray means of the
+    mask loss (``1 / p_keep`` after :meth:`Adaptivity.thin_empty_rays`; None: all 1)."""
 
     def __len__(self) -> int:
         return int(self.origins.shape[0])
@@ -43,14 +46,16 @@ class RayBatch:
                         None if self.rgb is None else self.rgb[a:b],
                         None if self.mask is None else self.mask[a:b],
                         None if self.view is None else self.view[a:b],
-                        None if self.unlit is None else self.unlit[a:b])
+                        None if self.unlit is None else self.unlit[a:b],
+                        None if self.weight is None else self.weight[a:b])
 
     def index(self, idx: Tensor) -> "RayBatch":
         return RayBatch(self.origins[idx], self.directions[idx],
                         None if self.rgb is None else self.rgb[idx],
                         None if self.mask is None else self.mask[idx],
                         None if self.view is None else self.view[idx],
-                        None if self.unlit is None else self.unlit[idx])
+                        None if self.unlit is None else self.unlit[idx],
+                        None if self.weight is None else self.weight[idx])
 
 
 def foreground_peaks(images: np.ndarray, masks: np.ndarray | None) -> np.ndarray:

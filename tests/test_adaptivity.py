@@ -485,3 +485,26 @@ def test_empty_rays_stay_without_adaptivity_or_before_the_first_refresh():
     fresh = NePFModel(cfg.model)                                # never refreshed: everything occupied
     on = Adaptivity(cfg, enabled=True, iters_fixed=False)
     assert on.thin_empty_rays(fresh, rays, step=0) is rays and not _names(on, "empty_rays")
+
+
+def test_kept_misses_carry_importance_weights_and_the_mask_loss_stays_unbiased():
+    from nepf_core.losses import mask_bce
+    cfg, model, rays = _sphere_model_and_rays()
+    a = Adaptivity(cfg, enabled=True, iters_fixed=False)
+    a.miss_keep = 0.25
+    g = torch.Generator().manual_seed(7)
+    ws = torch.rand(len(rays), generator=g)            # a fixed "rendered" opacity per drawn ray
+    full = float(mask_bce(ws, rays.mask))               # mean over the whole drawn batch
+    vals = []
+    for s in range(400):
+        kept = a.thin_empty_rays(model, rays, step=s, generator=torch.Generator().manual_seed(100 + s))
+        hit = kept.view < 24
+        assert torch.equal(kept.weight[hit], torch.ones(int(hit.sum())))
+        assert torch.allclose(kept.weight[~hit], torch.full((int((~hit).sum()),), 4.0))
+        vals.append(float(mask_bce(ws[kept.view], kept.mask, kept.weight)))
+    # ratio estimator: its mean matches the full-batch mean to well under the spread of one draw
+    assert abs(sum(vals) / len(vals) - full) < 0.02 * full
+    # hand value of the weighted mean: BCE(0.5, 1) = BCE(0.5, 0) = ln 2, BCE(0.9, 1) = -ln 0.9
+    w = torch.tensor([0.5, 0.9]); m = torch.tensor([0.0, 1.0]); q = torch.tensor([3.0, 1.0])
+    assert float(mask_bce(w, m, q)) == pytest.approx((3 * math.log(2) - math.log(0.9)) / 4, rel=1e-5)
+    assert float(mask_bce(w, m)) == pytest.approx((math.log(2) - math.log(0.9)) / 2, rel=1e-5)
