@@ -11,7 +11,12 @@ Rules (each decision is logged with its step and reason):
   If metallic < ``metal_thr`` and the share < ``spec_thr`` for ``patience`` checks in a row,
   the lobe is dropped. While it is off, the same statistics are still measured, and the
   lobe comes back if the share would exceed ``2 spec_thr`` or the L_vol residual on the
-  brightest 5% of pixels exceeds ``highlight_ratio`` times the median residual.
+  brightest 5% of pixels exceeds ``highlight_ratio`` times the median residual. A lobe kept
+  to the end is recorded as kept, with the last metallic, share and
+  :meth:`Adaptivity.lobe_residual_gain` (how much higher the surface error would be without
+  it). Measured on sphere_diffuse (Lambertian) at step 1000: metallic 0.60, share 12-14 %,
+  gain +36 %: the optimiser uses metallic to darken the diffuse lobe and the GGX lobe to
+  shape the shading, so the lobe is not dropped there.
 * **Hessian regulariser.** Only while the eikonal residual (EMA) is above ``eik_thr``.
 * **Iterations.** When the user did not fix the iteration count, stop when the held-out
   PSNR has not improved by ``min_gain_db`` over ``plateau_patience`` evaluations **and**
