@@ -356,15 +356,12 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
                 break
             if time_budget_s is not None and wall() >= time_budget_s:
                 break
-            if adapt.stop_requested:
-                status = "stopped_early"
-                break
             p = progress_frac()
             warm = step / max(tc.warmup_steps, 1)
             post = (p * total - tc.warmup_steps) / max(total - tc.warmup_steps, 1) if not time_budget_s else p
             f = lr_factor(warm if not time_budget_s else min(warm, 1.0), post, tc.lr_alpha)
             f = adapt.lr_after_plateau(wall(), f)
-            if adapt.stop_requested:
+            if adapt.stop_requested:  # plateau (at once, or at the end of its cool-down)
                 status = "stopped_early"
                 break
             for gparam in optimizer.param_groups:
