@@ -289,7 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-every-for", action="append", default=[], metavar="CONFIG=S",
                    help="per-config evaluation period, e.g. paper=180 (a paper evaluation costs minutes)")
     p.add_argument("--eval-stride", type=int, default=1, help="render held-out views every N-th pixel")
-    p.add_argument("--repeats", type=int, default=1, help="runs per configuration; tables report medians")
+    p.add_argument("--repeats", type=int, default=1, help="runs per configuration; tables report medians; with N > 1 repeat r of every variant uses train.seed = r (matched pairs) unless --override sets it")
     p.add_argument("--threads", type=int, default=None, help="torch threads in each run (and OMP_NUM_THREADS)")
     p.add_argument("--chamfer-resolution", type=int, default=256,
                    help="marching-cubes resolution of the final Chamfer (0: skip; default 256)")
@@ -355,6 +355,8 @@ def plan_runs(args) -> list[dict]:
                     ov = {"train.eval_every_s": float(eval_every_for.get(c, args.eval_every)), "train.eval_stride": int(args.eval_stride)}
                     ov.update(extra)
                     ov.update(VARIANTS[v])
+                    if args.repeats > 1 and "train.seed" not in extra:
+                        ov["train.seed"] = r  # repeat r of every variant shares seed r (matched pairs)
                     rid = f"{t['scene']}__{c}__{v}__r{r}"
                     runs.append({**t, "preset": c, "variant": v, "repeat": r, "id": rid,
                                  "budget_s": float(budget_for.get(c, args.budget)), "overrides": ov,
