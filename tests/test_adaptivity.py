@@ -508,3 +508,50 @@ def test_kept_misses_carry_importance_weights_and_the_mask_loss_stays_unbiased()
     w = torch.tensor([0.5, 0.9]); m = torch.tensor([0.0, 1.0]); q = torch.tensor([3.0, 1.0])
     assert float(mask_bce(w, m, q)) == pytest.approx((3 * math.log(2) - math.log(0.9)) / 4, rel=1e-5)
     assert float(mask_bce(w, m)) == pytest.approx((math.log(2) - math.log(0.9)) / 2, rel=1e-5)
+
+
+def test_fit_stops_at_a_plateau_after_annealing_the_learning_rate(tmp_path, monkeypatch):
+    """End to end through ``fit``: a held-out PSNR that never improves (the evaluation is
+    replaced by a constant, so the plateau is certain) fires the plateau rule, the learning
+    rate then falls monotonically to the floor over the cool-down, and the run ends
+    ``stopped_early`` long before its time budget, with the decision in report.json."""
+    import nepf_core.fit as fit_mod
+    from nepf_core.data.detect import load_scene
+    from nepf_core.data.synth import make_scene
+
+    make_scene(tmp_path / "s", n_views=4, n_test=0, resolution=24, supersample=1, write_mesh=False)
+    scene = load_scene(tmp_path / "s" / "dtu")
+    calls = []
+
+    def flat_eval(model, cfg, targets, *a, **k):
+        calls.append(1)
+        return {"test_psnr": 20.0}
+
+    monkeypatch.setattr(fit_mod, "evaluate_test", flat_eval)
+    cfg = tiny()
+    t = cfg.train
+    t.iters, t.batch_rays, t.log_every, t.sync_every, t.checkpoint_every = 10**6, 32, 1, 0, 10**6
+    t.eval_every_s, t.plateau_patience, t.plateau_min_frac, t.plateau_cooldown_frac = 0.3, 2, 0.5, 0.5
+    budget = 120.0
+    res = fit_mod.fit(scene, tmp_path / "run", cfg, device="cpu", time_budget_s=budget,
+                      targets=fit_mod.EvalTargets(test_scene=scene), iters_fixed=False)
+    assert res.status == "stopped_early"
+    assert res.wall_s < budget / 4
+    rep = json.loads((tmp_path / "run" / "report.json").read_text())
+    stop = [d for d in rep["decisions"] if d["decision"] == "early_stop"]
+    assert len(stop) == 1 and stop[0]["value"] is True
+    recs = _records(tmp_path / "run")
+    tests = [r for r in recs if r.get("kind") == "test"]
+    t_plateau = max(r["wall_s"] for r in tests if r["step"] <= stop[0]["step"])
+    # rule: the plateau needs patience evaluations without gain spanning half the training time
+    assert len([r for r in tests if r["step"] <= stop[0]["step"]]) >= 1 + t.plateau_patience
+    train = [r for r in recs if r.get("kind", "train") == "train"]
+    cool = [r for r in train if r["step"] > stop[0]["step"]]
+    assert len(cool) >= 3, "the cool-down must last several steps"
+    lrs = [r["lr"] for r in cool]
+    assert all(b <= a + 1e-12 for a, b in zip(lrs, lrs[1:])), "the learning rate only falls in the cool-down"
+    base = t.lr
+    assert lrs[0] > 2 * t.lr_alpha * base            # it starts well above the floor ...
+    assert lrs[-1] < 0.5 * lrs[0]                     # ... and ends near it
+    # the stop comes once the cool-down (cooldown_frac x the training time at the plateau) has passed
+    assert res.wall_s >= t_plateau * (1 + t.plateau_cooldown_frac) - 0.05
