@@ -60,6 +60,8 @@ class Adaptivity:
     warmup_max_steps = 300
     metal_thr = 0.05
     spec_thr = 0.02
+    view_spread_thr = 0.025
+    view_points = 256
     patience = 3
     highlight_ratio = 3.0
     eik_thr = 0.05
@@ -92,6 +94,8 @@ class Adaptivity:
         self._lobe_gain = None
         self._drop_last = None
         self._drop_sum, self._drop_n = 0.0, 0
+        self._cams = None
+        self._view_spread = None
 
     # -- bookkeeping --
     def record(self, decision: str, value, reason: str, step: int = 0) -> None:
@@ -105,7 +109,7 @@ class Adaptivity:
                 "cool": [self._cool_start, self._cool_len, self._cool_f0], "w_hessian": self.cfg.loss.w_hessian,
                 "skip_sum": self._skip_sum, "skip_n": self._skip_n, "occ_len": self._occ_len,
                 "n_samples_occupied": self.cfg.render.n_samples_occupied,
-                "drop_sum": self._drop_sum, "drop_n": self._drop_n}
+                "drop_sum": self._drop_sum, "drop_n": self._drop_n, "view_spread": self._view_spread}
 
     def load_state(self, s: dict) -> None:
         if not s:
@@ -124,10 +128,13 @@ class Adaptivity:
         self._skip_sum, self._skip_n = s.get("skip_sum", 0.0), s.get("skip_n", 0)
         self._occ_len = s.get("occ_len")
         self._drop_sum, self._drop_n = s.get("drop_sum", 0.0), s.get("drop_n", 0)
+        self._view_spread = s.get("view_spread")
         self.cfg.render.n_samples_occupied = s.get("n_samples_occupied", self.cfg.render.n_samples_occupied)
 
     # -- before training --
     def decide_before_training(self, scene) -> None:
+        c2w = getattr(scene, "c2w", None)
+        self._cams = None if c2w is None else torch.as_tensor(np.asarray(c2w)[:, :3, 3], dtype=torch.float32)
         if scene.has_masks:
             self.use_mask_loss = self.cfg.loss.w_mask > 0
             self.cfg.model.background = False
@@ -219,6 +226,24 @@ class Adaptivity:
     def wants_specular_stats(self, step: int) -> bool:
         return self.enabled and step > 0 and step % self.check_every == 0
 
+    def check_view_spread(self, model, out, rays, generator: torch.Generator | None = None) -> None:
+        """At a specular check (before :meth:`on_step`): how much the learned outgoing radiance
+        changes with the viewpoint at the surface (:func:`nepf_core.view_dependence.radiance_view_spread`
+        at the max-weight points of up to ``view_points`` foreground rays of the batch, over the
+        training cameras). Logged as ``radiance_view_spread``."""
+        if not self.enabled or self._cams is None or "x" not in out.surf:
+            return
+        from nepf_core.view_dependence import radiance_view_spread
+        fg = out.weight_sum.detach() > 0.5
+        if rays.mask is not None:
+            fg = fg & (rays.mask > 0.5)
+        x = out.surf["x"].detach()[fg][: self.view_points]
+        if x.shape[0] < 8:
+            return
+        r = radiance_view_spread(model, x, self._cams.to(x.device))
+        if math.isfinite(r["spread"]):
+            self._view_spread = r["spread"]
+
     def step_stats(self) -> dict:
         s = dict(self._stats)
         if self._occ_frac is not None:
@@ -262,19 +287,36 @@ class Adaptivity:
             return
         metal = float(out.surf["metallic"].detach()[surf_w].mean())
         share = float(out.surf["specular"][surf_w].mean())
+        spread = self._view_spread
         self._stats = {"surf_metallic": metal, "specular_share": share}
         if self._lobe_gain is not None:
             self._stats["lobe_residual_gain"] = self._lobe_gain
+        if spread is not None:
+            self._stats["radiance_view_spread"] = spread
+        # the radiance's view spread decides where it can be measured; the material's own
+        # numbers only when it cannot (metallic stays ~0.5 on a Lambertian sphere, docstring)
+        flat = spread is not None and spread < self.view_spread_thr
+        diffuse = flat if spread is not None else (metal < self.metal_thr and share < self.spec_thr)
         if self.cfg.render.specular:
-            if metal < self.metal_thr and share < self.spec_thr:
+            if diffuse:
                 self._diffuse_streak += 1
                 if self._diffuse_streak >= self.patience:
                     self.cfg.render.specular = False
-                    self.record("specular_lobe", False, f"scene looks diffuse: mean metallic {metal:.3f} < {self.metal_thr}, "
-                                f"specular share {share:.3%} < {self.spec_thr:.0%} for {self.patience} checks", step)
+                    why = (f"the learned radiance is view-independent: it changes by {spread:.2%} across the training "
+                           f"cameras (< {self.view_spread_thr:.1%})" if flat else
+                           f"mean metallic {metal:.3f} < {self.metal_thr}, specular share {share:.3%} < {self.spec_thr:.0%}")
+                    self.record("specular_lobe", False, f"scene looks diffuse: {why} for {self.patience} checks "
+                                f"(at the drop: metallic {metal:.3f}, lobe share {share:.1%}); the GGX lobe is no longer "
+                                "evaluated and the asset carries the diffuse-equivalent material (albedo (1-m) c, metallic 0)",
+                                step)
             else:
                 self._diffuse_streak = 0
-        elif share > 2 * self.spec_thr:
+        elif spread is not None and spread > 2 * self.view_spread_thr:
+            self.cfg.render.specular = True
+            self._diffuse_streak = 0
+            self.record("specular_lobe", True, f"the learned radiance now changes by {spread:.2%} across the training "
+                        f"cameras (> {2 * self.view_spread_thr:.1%})", step)
+        elif spread is None and share > 2 * self.spec_thr:
             self.cfg.render.specular = True
             self._diffuse_streak = 0
             self.record("specular_lobe", True, f"specular share would be {share:.3%} > {2 * self.spec_thr:.0%}", step)
@@ -324,6 +366,11 @@ class Adaptivity:
             self._lobe_gain = gain
 
     def on_highlight_residual(self, step: int, ratio: float) -> None:
+        """Bring the lobe back when the brightest pixels' L_vol residual is ``highlight_ratio``
+        times the median, unless the learned radiance says the scene is still view-independent
+        (a diffuse fit's residual grows with brightness too)."""
+        if self._view_spread is not None and self._view_spread < self.view_spread_thr:
+            return
         if self.enabled and not self.cfg.render.specular and ratio > self.highlight_ratio:
             self.cfg.render.specular = True
             self._diffuse_streak = 0
@@ -397,7 +444,10 @@ class Adaptivity:
                 not any(d["decision"] == "specular_lobe" for d in self.decisions):
             st = self._stats
             gain = st.get("lobe_residual_gain")
-            self.record("specular_lobe", True, "kept: at the last check the mean surface metallic was "
+            spread = st.get("radiance_view_spread")
+            self.record("specular_lobe", True, "kept: " + (
+                        "" if spread is None else f"the learned radiance changes by {spread:.2%} across the training "
+                        f"cameras (drop below {self.view_spread_thr:.1%}); ") + "at the last check the mean surface metallic was "
                         f"{st['surf_metallic']:.3f} (drop below {self.metal_thr}), the lobe's share of L_surf "
                         f"{st['specular_share']:.1%} (drop below {self.spec_thr:.0%})"
                         + ("" if gain is None else f", and without it the surface error would be {gain:+.0%}"),

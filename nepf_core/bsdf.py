@@ -186,3 +186,16 @@ def shade(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor, me
     """
     f = bsdf_eval(n, l, v, albedo, roughness, metallic, lambertian=lambertian, specular=specular)
     return f * intensity * dot(n, l).clamp_min(0.0)
+
+
+def diffuse_only_material(albedo: Tensor, metallic: Tensor) -> tuple[Tensor, Tensor]:
+    """The material a diffuse-only BSDF actually renders: ``(albedo', metallic') = ((1 - m) c, 0)``.
+
+    Without the GGX lobe, ``f = (1 - m) f_d(c)``, and both diffuse models are linear in the
+    albedo ``c``, so ``(1 - m) f_d(c) = f_d((1 - m) c)`` exactly: the pair below renders the
+    same image with ``metallic = 0``, which is what an exported asset must carry once the lobe
+    is dropped (a renderer such as Blender would otherwise add a metallic lobe the fit never
+    had). Shapes: ``albedo [..., 3]``, ``metallic [...]`` or ``[..., 1]`` -> same shapes.
+    """
+    m = metallic if metallic.dim() == albedo.dim() else metallic[..., None]
+    return albedo * (1.0 - m), torch.zeros_like(metallic)

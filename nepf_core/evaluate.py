@@ -18,6 +18,7 @@ import math
 import numpy as np
 import torch
 
+from nepf_core.bsdf import diffuse_only_material
 from nepf_core.rays import PixelSampler
 from nepf_core.render.renderer import RenderConfig, render_rays
 
@@ -54,8 +55,11 @@ def render_view(model, sampler: PixelSampler, k: int, cfg: RenderConfig, *, stri
             if getattr(model, "background", None) is not None:
                 pbr = pbr + (1 - alpha) * model.background(rb.directions)
             s = out.surf
-            vals = {"pbr": pbr, "radiance": out.rgb_r, "albedo": s["albedo"], "roughness": s["roughness"][:, None],
-                    "metallic": s["metallic"][:, None], "normal": s["normal"], "light_dir": s["light_dir"],
+            albedo, metal = s["albedo"], s["metallic"]
+            if not cfg.specular:  # what the diffuse-only BSDF renders (same image, metallic 0)
+                albedo, metal = diffuse_only_material(albedo, metal)
+            vals = {"pbr": pbr, "radiance": out.rgb_r, "albedo": albedo, "roughness": s["roughness"][:, None],
+                    "metallic": metal[:, None], "normal": s["normal"], "light_dir": s["light_dir"],
                     "light_intensity": s["intensity"][:, None], "alpha": alpha, "depth": out.depth[:, None]}
             for c in CHANNELS:
                 acc[c].append(vals[c].detach().float().cpu())

@@ -411,6 +411,8 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
                     top = lum >= torch.quantile(lum, 0.95) if lum.numel() >= 20 else lum > 1e9
                     if top.sum() > 0:
                         adapt.on_highlight_residual(step, float(err[top].mean() / err.median().clamp_min(1e-4)))
+            if need_extras:
+                adapt.check_view_spread(model, out, rays, generator=gen)
             adapt.on_step(step, out, losses)   # after the checks above, whose statistics it logs
             if tc.target_samples > 0 and out.n_head_evals > 0:
                 ratio = tc.target_samples / out.n_head_evals
@@ -464,6 +466,10 @@ def load_model(run_dir, device: str = "auto") -> tuple[NePFModel, NePFConfig, di
     model = NePFModel(cfg.model).to(dev)
     state = torch.load(ck, map_location=dev, weights_only=False)
     model.load_state_dict(state["model"])
+    # config.json is written before training; a lobe dropped during training stays dropped
+    switches = (state.get("extra") or {}).get("adaptivity") or {}
+    if "specular" in switches:
+        cfg.render.specular = bool(switches["specular"])
     model.eval()
     return model, cfg, state
 

@@ -94,9 +94,12 @@ class NePFModel(nn.Module):
 class ModelFieldQuery:
     """Adapter from :class:`NePFModel` to the export's FieldQuery protocol (chunked)."""
 
-    def __init__(self, model: NePFModel, chunk: int = 65536) -> None:
+    def __init__(self, model: NePFModel, chunk: int = 65536, *, specular: bool = True) -> None:
+        """``specular=False``: the run dropped the GGX lobe, so :meth:`material` returns the
+        material the diffuse-only BSDF renders (:func:`nepf_core.bsdf.diffuse_only_material`)."""
         self.model = model
         self.chunk = chunk
+        self.specular = specular
 
     def _chunks(self, fn, *xs):
         outs = [fn(*[x[i:i + self.chunk] for x in xs]) for i in range(0, xs[0].shape[0], self.chunk)]
@@ -111,7 +114,11 @@ class ModelFieldQuery:
         return self._chunks(self.model.query_normal, x)
 
     def material(self, x: Tensor, n: Tensor):
-        return self._chunks(self.model.query_material, x, n)
+        albedo, rough, metal = self._chunks(self.model.query_material, x, n)
+        if not self.specular:
+            from nepf_core.bsdf import diffuse_only_material
+            albedo, metal = diffuse_only_material(albedo, metal)
+        return albedo, rough, metal
 
     def light(self, x: Tensor, n: Tensor):
         return self._chunks(self.model.query_light, x, n)

@@ -1,0 +1,129 @@
+"""The learned radiance's view spread (nepf_core.view_dependence) and the diffuse-only material."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from nepf_core.bsdf import bsdf_eval, diffuse_only_material
+from nepf_core.view_dependence import radiance_view_spread
+
+
+class _PlaneSDF(nn.Module):
+    """f(x) = x_z: the plane z = 0 with normal +z; a 2-channel feature."""
+
+    def forward(self, x):
+        return x[:, 2], torch.zeros(x.shape[0], 2)
+
+    def sdf(self, x):
+        return x[:, 2]
+
+
+class _Radiance(nn.Module):
+    """``Y = base`` from most cameras, ``base (1 + h)`` from the camera at +y (``v_y < -0.1``);
+    100 from a camera under the plane (``v_z > 0``) or at grazing incidence (``v_x < -0.8``):
+    those two must never be used."""
+
+    def __init__(self, h: float, base: float = 0.5):
+        super().__init__()
+        self.h, self.base = h, base
+
+    def forward(self, x, v, g, feat):
+        y = torch.full((x.shape[0],), self.base)
+        y = torch.where(v[:, 1] < -0.1, self.base * (1.0 + self.h), y)
+        y = torch.where((v[:, 2] > 0) | (v[:, 0] < -0.8), torch.full_like(y, 100.0), y)
+        return y[:, None].expand(-1, 3)
+
+
+def _model(h):
+    m = nn.Module()
+    m.sdf, m.radiance = _PlaneSDF(), _Radiance(h)
+    return m
+
+
+# three cameras facing the plane (cos > 0.96), one under it, one grazing (cos 0.16)
+CAMS = torch.tensor([[0.5, 0.0, 2.0], [-0.5, 0.0, 2.0], [0.0, 0.5, 2.0], [0.0, 0.0, -2.0], [3.0, 0.0, 0.5]])
+
+
+def _points(n=64):
+    g = torch.Generator().manual_seed(0)
+    xy = (torch.rand(n, 2, generator=g) - 0.5) * 0.2
+    return torch.cat([xy, torch.zeros(n, 1)], -1)
+
+
+def test_view_independent_radiance_has_zero_spread():
+    r = radiance_view_spread(_model(0.0), _points(), CAMS, fd_step=1e-3)
+    assert r["n_points"] == 64
+    assert r["spread"] == 0.0
+
+
+@pytest.mark.parametrize("h", [0.05, 0.3, 2.0])
+def test_one_bright_view_of_three_gives_the_hand_worked_excess(h):
+    """Views ``b, b, b (1 + h)``: max - median = b h, mean = b (1 + h / 3), so
+    spread = h / (1 + h / 3). The cameras under the plane and at grazing incidence
+    (radiance 100) are never used."""
+    r = radiance_view_spread(_model(h), _points(), CAMS, fd_step=1e-3)
+    assert r["n_points"] == 64
+    assert r["spread"] == pytest.approx(h / (1 + h / 3), rel=1e-5)
+
+
+def test_spread_is_scale_invariant_and_needs_two_facing_cameras():
+    m = _model(0.2)
+    a = radiance_view_spread(m, _points(), CAMS, fd_step=1e-3)
+    m.radiance.base = 0.05
+    b = radiance_view_spread(m, _points(), CAMS, fd_step=1e-3)
+    assert a["spread"] == pytest.approx(b["spread"], rel=1e-5)
+    one = radiance_view_spread(m, _points(), CAMS[[0, 3, 4]], fd_step=1e-3)  # one facing camera only
+    assert one["n_points"] == 0 and math.isnan(one["spread"])
+
+
+def test_many_cameras_are_subsampled_evenly():
+    """100 facing cameras on a ring, every 4th of them bright: subsampled to 25 (every 4th
+    index kept, bright ones included), still a quarter bright."""
+    ang = torch.arange(100) * (2 * math.pi / 100)
+    cams = torch.stack([0.5 * torch.cos(ang), 0.5 * torch.sin(ang), torch.full((100,), 2.0)], -1)
+    bright = torch.zeros(100, dtype=torch.bool)
+    bright[::4] = True
+
+    def rad(x, v, g, feat):  # bright when the ray comes from a bright camera
+        c = x - v * ((x[:, 2:3] - 2.0) / v[:, 2:3])  # back to the camera plane z = 2
+        k = torch.atan2(c[:, 1], c[:, 0]).remainder(2 * math.pi) / (2 * math.pi / 100)
+        y = torch.where(bright[k.round().long() % 100], 1.0, 0.5)
+        return y[:, None].expand(-1, 3)
+    from types import SimpleNamespace
+    m = SimpleNamespace(sdf=_PlaneSDF(), radiance=rad)
+    r = radiance_view_spread(m, _points(8), cams, fd_step=1e-3, max_cams=25)
+    # 25 cameras, indices 0, 4.125, ... rounded: those at multiples of 4 are bright
+    idx = torch.linspace(0, 99, 25).round().long()
+    nb = int(bright[idx].sum())
+    assert 0 < nb < 13  # the median view is a dim one
+    expect = 0.5 / ((nb * 1.0 + (25 - nb) * 0.5) / 25)
+    assert r["spread"] == pytest.approx(expect, rel=1e-4)
+
+
+@pytest.mark.parametrize("lambertian", [False, True])
+def test_diffuse_only_material_renders_the_same_without_the_lobe(lambertian):
+    """``(1 - m) f_d(c) = f_d((1 - m) c)``: the diffuse-only BSDF of (c, m) equals that of the
+    exported pair ((1 - m) c, 0), on random configurations."""
+    g = torch.Generator().manual_seed(0)
+    N = 4096
+
+    def unit(t):
+        return t / t.norm(dim=-1, keepdim=True)
+    n = unit(torch.randn(N, 3, generator=g))
+    l = unit(torch.randn(N, 3, generator=g))
+    v = unit(torch.randn(N, 3, generator=g))
+    c = torch.rand(N, 3, generator=g)
+    r, m = torch.rand(N, 1, generator=g), torch.rand(N, 1, generator=g)
+    c2, m2 = diffuse_only_material(c, m)
+    assert torch.all(m2 == 0) and m2.shape == m.shape
+    f1 = bsdf_eval(n, l, v, c, r, m, lambertian=lambertian, specular=False)
+    f2 = bsdf_eval(n, l, v, c2, r, m2, lambertian=lambertian, specular=False)
+    assert torch.allclose(f1, f2, atol=1e-7, rtol=1e-5)
+    assert f1.abs().max() > 0.01  # not a vacuous comparison
+    # 1-D metallic (as the material field returns it) works too
+    c3, m3 = diffuse_only_material(c, m[:, 0])
+    assert torch.allclose(c3, c2) and m3.shape == (N,)
