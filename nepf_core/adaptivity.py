@@ -11,8 +11,8 @@ Rules (each decision is logged with its step and reason):
   training cameras that face each point (:func:`nepf_core.view_dependence.radiance_view_spread`:
   max minus median view over the mean, a ratio of sums). The lobe can only add
   view-dependent light, so when that spread stays under ``view_spread_thr`` (2.5 %) for
-  ``patience`` checks in a row the lobe is dropped, and the asset carries the diffuse-equivalent
-  material (:func:`nepf_core.bsdf.diffuse_only_material`). While it is off it comes back if
+  ``patience`` checks in a row the lobe is dropped: the surface is then shaded, and exported,
+  as a dielectric diffuse, metallic 0 (:func:`nepf_core.bsdf.diffuse_only_material`). While it is off it comes back if
   the spread exceeds ``2 view_spread_thr``, or if the L_vol residual on the brightest 5 % of
   pixels exceeds ``highlight_ratio`` times the median residual while the spread is not flat.
   Where no spread can be measured (fewer than two cameras within 53 degrees of the normal:
@@ -316,7 +316,7 @@ class Adaptivity:
                            f"mean metallic {metal:.3f} < {self.metal_thr}, specular share {share:.3%} < {self.spec_thr:.0%}")
                     self.record("specular_lobe", False, f"scene looks diffuse: {why} for {self.patience} checks "
                                 f"(at the drop: metallic {metal:.3f}, lobe share {share:.1%}); the GGX lobe is no longer "
-                                "evaluated and the asset carries the diffuse-equivalent material (albedo (1-m) c, metallic 0)",
+                                "evaluated: the surface is shaded as a dielectric diffuse (metallic 0, also in the asset)",
                                 step)
             else:
                 self._diffuse_streak = 0

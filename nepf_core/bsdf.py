@@ -189,13 +189,14 @@ def shade(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor, me
 
 
 def diffuse_only_material(albedo: Tensor, metallic: Tensor) -> tuple[Tensor, Tensor]:
-    """The material a diffuse-only BSDF actually renders: ``(albedo', metallic') = ((1 - m) c, 0)``.
+    """The material rendered once the GGX lobe is dropped: ``(albedo, metallic) -> (albedo, 0)``.
 
-    Without the GGX lobe, ``f = (1 - m) f_d(c)``, and both diffuse models are linear in the
-    albedo ``c``, so ``(1 - m) f_d(c) = f_d((1 - m) c)`` exactly: the pair below renders the
-    same image with ``metallic = 0``, which is what an exported asset must carry once the lobe
-    is dropped (a renderer such as Blender would otherwise add a metallic lobe the fit never
-    had). Shapes: ``albedo [..., 3]``, ``metallic [...]`` or ``[..., 1]`` -> same shapes.
+    With the lobe off, the renderer shades a dielectric diffuse ``f = f_d(c)`` (metallic 0),
+    not ``(1 - m) f_d(c)``: the latter leaves ``m`` as a free per-point dimmer that trades
+    against the albedo and the photon intensity. Measured on sphere_diffuse with the dimmer
+    kept: held-out PBR 46.0 dB but aligned albedo PSNR 6.7 dB (red albedo saturated at 1,
+    metallic spread over [0, 1]). The exported asset carries the same material, so a renderer
+    such as Blender adds no metallic lobe the fit never had. Shapes: ``albedo [..., 3]``,
+    ``metallic [...]`` or ``[..., 1]`` -> same shapes.
     """
-    m = metallic if metallic.dim() == albedo.dim() else metallic[..., None]
-    return albedo * (1.0 - m), torch.zeros_like(metallic)
+    return albedo, torch.zeros_like(metallic)

@@ -56,7 +56,7 @@ def render_view(model, sampler: PixelSampler, k: int, cfg: RenderConfig, *, stri
                 pbr = pbr + (1 - alpha) * model.background(rb.directions)
             s = out.surf
             albedo, metal = s["albedo"], s["metallic"]
-            if not cfg.specular:  # what the diffuse-only BSDF renders (same image, metallic 0)
+            if not cfg.specular:  # lobe dropped: shaded as a dielectric diffuse (metallic 0)
                 albedo, metal = diffuse_only_material(albedo, metal)
             vals = {"pbr": pbr, "radiance": out.rgb_r, "albedo": albedo, "roughness": s["roughness"][:, None],
                     "metallic": metal[:, None], "normal": s["normal"], "light_dir": s["light_dir"],

@@ -96,7 +96,7 @@ class ModelFieldQuery:
 
     def __init__(self, model: NePFModel, chunk: int = 65536, *, specular: bool = True) -> None:
         """``specular=False``: the run dropped the GGX lobe, so :meth:`material` returns the
-        material the diffuse-only BSDF renders (:func:`nepf_core.bsdf.diffuse_only_material`)."""
+        material it was shaded with, metallic 0 (:func:`nepf_core.bsdf.diffuse_only_material`)."""
         self.model = model
         self.chunk = chunk
         self.specular = specular

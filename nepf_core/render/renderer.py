@@ -229,6 +229,8 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         if cfg.unlit_material_stopgrad:
             rough_shade = torch.where(unlit_sample, rough.detach(), rough)
             metal_shade = torch.where(unlit_sample, metal.detach(), metal)
+    if not cfg.specular:  # lobe dropped: a dielectric diffuse f_d(c); metallic must not become a free dimmer
+        metal_shade = torch.zeros_like(metal_shade)
     pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal_shade[:, None], intensity[:, None],
                      lambertian=cfg.lambertian, specular=cfg.specular)
 
