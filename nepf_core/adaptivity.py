@@ -71,6 +71,7 @@ class Adaptivity:
     spec_thr = 0.02
     view_spread_thr = 0.025
     view_points = 256
+    lobe_fade_steps = 500
     patience = 3
     highlight_ratio = 3.0
     eik_thr = 0.05
@@ -105,6 +106,7 @@ class Adaptivity:
         self._drop_sum, self._drop_n = 0.0, 0
         self._cams = None
         self._view_spread = None
+        self._fade_start = None
 
     # -- bookkeeping --
     def record(self, decision: str, value, reason: str, step: int = 0) -> None:
@@ -118,7 +120,8 @@ class Adaptivity:
                 "cool": [self._cool_start, self._cool_len, self._cool_f0], "w_hessian": self.cfg.loss.w_hessian,
                 "skip_sum": self._skip_sum, "skip_n": self._skip_n, "occ_len": self._occ_len,
                 "n_samples_occupied": self.cfg.render.n_samples_occupied,
-                "drop_sum": self._drop_sum, "drop_n": self._drop_n, "view_spread": self._view_spread}
+                "drop_sum": self._drop_sum, "drop_n": self._drop_n, "view_spread": self._view_spread,
+                "fade_start": self._fade_start, "diffuse_metal_weight": self.cfg.render.diffuse_metal_weight}
 
     def load_state(self, s: dict) -> None:
         if not s:
@@ -138,6 +141,8 @@ class Adaptivity:
         self._occ_len = s.get("occ_len")
         self._drop_sum, self._drop_n = s.get("drop_sum", 0.0), s.get("drop_n", 0)
         self._view_spread = s.get("view_spread")
+        self._fade_start = s.get("fade_start")
+        self.cfg.render.diffuse_metal_weight = s.get("diffuse_metal_weight", self.cfg.render.diffuse_metal_weight)
         self.cfg.render.n_samples_occupied = s.get("n_samples_occupied", self.cfg.render.n_samples_occupied)
 
     # -- before training --
@@ -278,6 +283,7 @@ class Adaptivity:
             self._skip_n += 1
         if not self.enabled:
             return
+        self._fade_metal(step)
         if step % self.check_every == 0:
             self._decide_coarse_samples(step)
         total = self.cfg.train.iters
@@ -311,12 +317,15 @@ class Adaptivity:
                 self._diffuse_streak += 1
                 if self._diffuse_streak >= self.patience:
                     self.cfg.render.specular = False
+                    self.cfg.render.diffuse_metal_weight = 1.0   # same image at the drop, then fades
+                    self._fade_start = step
                     why = (f"the learned radiance is view-independent: it changes by {spread:.2%} across the training "
                            f"cameras (< {self.view_spread_thr:.1%})" if flat else
                            f"mean metallic {metal:.3f} < {self.metal_thr}, specular share {share:.3%} < {self.spec_thr:.0%}")
                     self.record("specular_lobe", False, f"scene looks diffuse: {why} for {self.patience} checks "
                                 f"(at the drop: metallic {metal:.3f}, lobe share {share:.1%}); the GGX lobe is no longer "
-                                "evaluated: the surface is shaded as a dielectric diffuse (metallic 0, also in the asset)",
+                                f"evaluated; the diffuse (1 - m) f_d(c) fades to a dielectric f_d(c) over {self.lobe_fade_steps} steps "
+                                "(the asset carries the shaded material, metallic 0)",
                                 step)
             else:
                 self._diffuse_streak = 0
@@ -329,6 +338,16 @@ class Adaptivity:
             self.cfg.render.specular = True
             self._diffuse_streak = 0
             self.record("specular_lobe", True, f"specular share would be {share:.3%} > {2 * self.spec_thr:.0%}", step)
+
+    def _fade_metal(self, step: int) -> None:
+        """After a drop, ``render.diffuse_metal_weight = max(0, 1 - (step - t_drop) / lobe_fade_steps)``:
+        the diffuse goes from ``(1 - m) f_d(c)`` (the image just before the drop, minus the
+        lobe) to ``f_d(c)`` linearly. An immediate switch doubled the sphere's shading at
+        metallic ~0.5: its held-out PBR fell to 19 dB and its albedo PSNR from 45 to 32 dB."""
+        r = self.cfg.render
+        if r.specular or self._fade_start is None or r.diffuse_metal_weight <= 0.0:
+            return
+        r.diffuse_metal_weight = max(0.0, 1.0 - (step - self._fade_start) / max(self.lobe_fade_steps, 1))
 
     def coarse_samples_for(self, occupied_length: float) -> int:
         """One coarse sample per march step of occupied space crossed:

@@ -188,15 +188,19 @@ def shade(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor, me
     return f * intensity * dot(n, l).clamp_min(0.0)
 
 
-def diffuse_only_material(albedo: Tensor, metallic: Tensor) -> tuple[Tensor, Tensor]:
-    """The material rendered once the GGX lobe is dropped: ``(albedo, metallic) -> (albedo, 0)``.
+def diffuse_only_material(albedo: Tensor, metallic: Tensor, weight: float = 0.0) -> tuple[Tensor, Tensor]:
+    """The material rendered once the GGX lobe is dropped: ``(c, m) -> ((1 - w m) c, 0)``.
 
-    With the lobe off, the renderer shades a dielectric diffuse ``f = f_d(c)`` (metallic 0),
-    not ``(1 - m) f_d(c)``: the latter leaves ``m`` as a free per-point dimmer that trades
-    against the albedo and the photon intensity. Measured on sphere_diffuse with the dimmer
-    kept: held-out PBR 46.0 dB but aligned albedo PSNR 6.7 dB (red albedo saturated at 1,
-    metallic spread over [0, 1]). The exported asset carries the same material, so a renderer
-    such as Blender adds no metallic lobe the fit never had. Shapes: ``albedo [..., 3]``,
+    With the lobe off the renderer shades ``f = (1 - w m) f_d(c)``
+    (``RenderConfig.diffuse_metal_weight = w``), and both diffuse models are linear in the
+    albedo, so ``(1 - w m) f_d(c) = f_d((1 - w m) c)``: the returned pair renders the same image
+    with metallic 0, which is what an exported asset must carry (a renderer such as Blender
+    would otherwise add a metallic lobe the fit never had). ``w`` fades from 1 to 0 after the
+    drop; at 0 the surface is a dielectric diffuse and ``m`` is ignored. Keeping ``w = 1``
+    leaves ``m`` as a free per-point dimmer that trades against the albedo and the photon
+    intensity: measured on sphere_diffuse, held-out PBR 46.0 dB but aligned albedo PSNR 6.7 dB
+    (red albedo saturated at 1, metallic spread over [0, 1]). Shapes: ``albedo [..., 3]``,
     ``metallic [...]`` or ``[..., 1]`` -> same shapes.
     """
-    return albedo, torch.zeros_like(metallic)
+    m = metallic if metallic.dim() == albedo.dim() else metallic[..., None]
+    return albedo * (1.0 - weight * m), torch.zeros_like(metallic)

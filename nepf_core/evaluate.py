@@ -57,7 +57,7 @@ def render_view(model, sampler: PixelSampler, k: int, cfg: RenderConfig, *, stri
             s = out.surf
             albedo, metal = s["albedo"], s["metallic"]
             if not cfg.specular:  # lobe dropped: shaded as a dielectric diffuse (metallic 0)
-                albedo, metal = diffuse_only_material(albedo, metal)
+                albedo, metal = diffuse_only_material(albedo, metal, cfg.diffuse_metal_weight)
             vals = {"pbr": pbr, "radiance": out.rgb_r, "albedo": albedo, "roughness": s["roughness"][:, None],
                     "metallic": metal[:, None], "normal": s["normal"], "light_dir": s["light_dir"],
                     "light_intensity": s["intensity"][:, None], "alpha": alpha, "depth": out.depth[:, None]}

@@ -470,6 +470,8 @@ def load_model(run_dir, device: str = "auto") -> tuple[NePFModel, NePFConfig, di
     switches = (state.get("extra") or {}).get("adaptivity") or {}
     if "specular" in switches:
         cfg.render.specular = bool(switches["specular"])
+    if "diffuse_metal_weight" in switches:
+        cfg.render.diffuse_metal_weight = float(switches["diffuse_metal_weight"])
     model.eval()
     return model, cfg, state
 

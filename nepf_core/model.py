@@ -94,12 +94,15 @@ class NePFModel(nn.Module):
 class ModelFieldQuery:
     """Adapter from :class:`NePFModel` to the export's FieldQuery protocol (chunked)."""
 
-    def __init__(self, model: NePFModel, chunk: int = 65536, *, specular: bool = True) -> None:
+    def __init__(self, model: NePFModel, chunk: int = 65536, *, specular: bool = True,
+                 diffuse_metal_weight: float = 0.0) -> None:
         """``specular=False``: the run dropped the GGX lobe, so :meth:`material` returns the
-        material it was shaded with, metallic 0 (:func:`nepf_core.bsdf.diffuse_only_material`)."""
+        material it was shaded with, metallic 0 (:func:`nepf_core.bsdf.diffuse_only_material`
+        with ``diffuse_metal_weight``, the run's ``render.diffuse_metal_weight``)."""
         self.model = model
         self.chunk = chunk
         self.specular = specular
+        self.diffuse_metal_weight = diffuse_metal_weight
 
     def _chunks(self, fn, *xs):
         outs = [fn(*[x[i:i + self.chunk] for x in xs]) for i in range(0, xs[0].shape[0], self.chunk)]
@@ -117,7 +120,7 @@ class ModelFieldQuery:
         albedo, rough, metal = self._chunks(self.model.query_material, x, n)
         if not self.specular:
             from nepf_core.bsdf import diffuse_only_material
-            albedo, metal = diffuse_only_material(albedo, metal)
+            albedo, metal = diffuse_only_material(albedo, metal, self.diffuse_metal_weight)
         return albedo, rough, metal
 
     def light(self, x: Tensor, n: Tensor):

@@ -618,7 +618,8 @@ def test_highlight_residual_cannot_bring_the_lobe_back_while_the_radiance_is_fla
 def test_fit_that_drops_the_lobe_exports_the_diffuse_equivalent_material(tmp_path, monkeypatch):
     """End to end: a fit whose radiance counts as flat (threshold raised to 1) drops the lobe;
     ``load_model`` restores the dropped switch (config.json predates it), and the export's
-    material query returns metallic 0 (what the surface was shaded with) and the same albedo."""
+    material query returns what the surface was shaded with: metallic 0, albedo (1 - w m) c with
+    the fade weight ``w`` of the run's last step."""
     from nepf_core.data.detect import load_scene
     from nepf_core.data.synth import make_scene
     from nepf_core.fit import fit, load_model
@@ -644,6 +645,28 @@ def test_fit_that_drops_the_lobe_exports_the_diffuse_equivalent_material(tmp_pat
     x = torch.randn(50, 3) * 0.3
     n = torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
     a0, r0, m0 = ModelFieldQuery(model).material(x, n)
-    a1, r1, m1 = ModelFieldQuery(model, specular=False).material(x, n)
+    w = cfg2.render.diffuse_metal_weight
+    a1, r1, m1 = ModelFieldQuery(model, specular=False, diffuse_metal_weight=w).material(x, n)
+    assert 0.0 < w < 1.0  # mid-fade after 20 steps (fade over 500): restored from the checkpoint
     assert float(m0.min()) > 0 and torch.all(m1 == 0)
-    assert torch.equal(a1, a0) and torch.equal(r1, r0)
+    m0c = m0 if m0.dim() == 2 else m0[:, None]
+    assert torch.allclose(a1, a0 * (1 - w * m0c)) and torch.equal(r1, r0)
+
+
+def test_dropped_lobe_fades_the_metallic_dimmer_out_linearly():
+    a, cfg = _adapt()
+    a._view_spread = 0.01
+    for step in (100, 200, 300):
+        a.on_step(step, _out(share=0.3, metallic=0.5), _losses())
+    assert not cfg.render.specular and cfg.render.diffuse_metal_weight == 1.0
+    n = a.lobe_fade_steps
+    a.on_step(300 + n // 4, _out(share=0.3, metallic=0.5), _losses())
+    assert cfg.render.diffuse_metal_weight == pytest.approx(0.75)
+    st = a.state()
+    b, cfg_b = _adapt()
+    b.load_state(json.loads(json.dumps(st)))
+    assert cfg_b.render.diffuse_metal_weight == pytest.approx(0.75) and not cfg_b.render.specular
+    b.on_step(300 + n // 2, _out(share=0.3, metallic=0.5), _losses())
+    assert cfg_b.render.diffuse_metal_weight == pytest.approx(0.5)
+    b.on_step(300 + 2 * n, _out(share=0.3, metallic=0.5), _losses())
+    assert cfg_b.render.diffuse_metal_weight == 0.0

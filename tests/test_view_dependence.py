@@ -139,3 +139,34 @@ def test_without_the_lobe_metallic_no_longer_changes_the_shading():
     assert not torch.allclose(c.rgb_surf, e.rgb_surf)
     albedo, metal = diffuse_only_material(s["albedo"], torch.full((64,), 0.7))
     assert torch.equal(albedo, s["albedo"]) and torch.all(metal == 0) and metal.shape == (64,)
+    # mid-fade: (1 - w m) f_d(c), which is the diffuse of ((1 - w m) c, metallic 0)
+    cfg.render.diffuse_metal_weight = 0.5
+    h = surf_rgb(0.9, False)
+    c2, m2 = diffuse_only_material(h.surf["albedo"], torch.full((64,), 0.9), 0.5)
+    ref2 = bsdf_eval(h.surf["normal"], h.surf["light_dir"], -d, c2, h.surf["roughness"][:, None],
+                     m2[:, None], specular=False) * h.surf["intensity"][:, None] * \
+        (h.surf["normal"] * h.surf["light_dir"]).sum(-1, keepdim=True).clamp_min(0)
+    assert torch.allclose(h.rgb_surf, ref2, atol=1e-6)
+    assert torch.allclose(h.rgb_surf, a.rgb_surf * (1 - 0.45), atol=1e-6)
+
+
+@pytest.mark.parametrize("lambertian", [False, True])
+@pytest.mark.parametrize("w", [1.0, 0.4])
+def test_diffuse_only_material_renders_the_same_as_the_faded_diffuse(lambertian, w):
+    """``(1 - w m) f_d(c) = f_d((1 - w m) c)`` (both diffuse models are linear in the albedo):
+    the shaded BSDF of (c, m) with the lobe off and fade weight w equals that of the exported
+    pair, on random configurations."""
+    g = torch.Generator().manual_seed(0)
+    N = 4096
+
+    def unit(t):
+        return t / t.norm(dim=-1, keepdim=True)
+    n, l, v = (unit(torch.randn(N, 3, generator=g)) for _ in range(3))
+    c = torch.rand(N, 3, generator=g)
+    r, m = torch.rand(N, 1, generator=g), torch.rand(N, 1, generator=g)
+    c2, m2 = diffuse_only_material(c, m, w)
+    assert torch.all(m2 == 0) and m2.shape == m.shape
+    f1 = bsdf_eval(n, l, v, c, r, w * m, lambertian=lambertian, specular=False)
+    f2 = bsdf_eval(n, l, v, c2, r, m2, lambertian=lambertian, specular=False)
+    assert torch.allclose(f1, f2, atol=1e-7, rtol=1e-5)
+    assert f1.abs().max() > 0.01

@@ -61,6 +61,10 @@ class RenderConfig:
     """Use the Lambertian diffuse (paper ablation) instead of Disney + retro-reflection."""
     specular: bool = True
     """Evaluate the GGX specular lobe (adaptivity can switch it off)."""
+    diffuse_metal_weight: float = 0.0
+    """Lobe off only: the diffuse is shaded as ``(1 - w m) f_d(c)`` with this ``w``. 0 (the
+    default): a dielectric diffuse, metallic ignored. Adaptivity fades it from 1 to 0 after
+    dropping the lobe, so the shading does not jump (``(1 - m) f_d`` to ``f_d``)."""
     unlit_albedo_stopgrad: bool = False
     """Training only: on rays whose target colour is unlit (``RayBatch.unlit``, set by fit()
     from the data), the colour error of L_vol / L_surf does not reach the albedo; only the
@@ -229,8 +233,8 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         if cfg.unlit_material_stopgrad:
             rough_shade = torch.where(unlit_sample, rough.detach(), rough)
             metal_shade = torch.where(unlit_sample, metal.detach(), metal)
-    if not cfg.specular:  # lobe dropped: a dielectric diffuse f_d(c); metallic must not become a free dimmer
-        metal_shade = torch.zeros_like(metal_shade)
+    if not cfg.specular:  # lobe dropped: (1 - w m) f_d(c), w fading to 0 (a dielectric diffuse)
+        metal_shade = metal_shade * cfg.diffuse_metal_weight
     pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal_shade[:, None], intensity[:, None],
                      lambertian=cfg.lambertian, specular=cfg.specular)
 
