@@ -18,22 +18,13 @@ from pathlib import Path
 import numpy as np
 
 
-def _srgb(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
-
-
-def _psnr(a: np.ndarray, b: np.ndarray, m: np.ndarray) -> float:
-    return float(10 * np.log10(1.0 / max(float(((a - b) ** 2)[m].mean()), 1e-12)))
-
-
 def breakdown(scene_dir: Path, run_dir: Path, stride: int = 2) -> dict:
     """Error breakdown of one run on ``scene_dir``'s held-out views (see the module docstring)."""
     import torch
     from scipy.ndimage import binary_erosion
 
     from nepf_core.data.detect import load_scene
-    from nepf_core.evaluate import render_view
+    from nepf_core.evaluate import psnr, render_view, srgb_np
     from nepf_core.fit import load_model
     from nepf_core.rays import PixelSampler
     from nepf_core.reframe import load_held_out
@@ -54,11 +45,11 @@ def breakdown(scene_dir: Path, run_dir: Path, stride: int = 2) -> dict:
             ng = gt_arrays["normal_world"][k, ::stride, ::stride]
             nerr.append(np.degrees(np.arccos(np.clip((n * ng).sum(-1), -1, 1)))[inner])
             metal.append(r["metallic"][inner]); rough.append(r["roughness"][inner])
-            P.append(_srgb(r["pbr"])); R.append(_srgb(r["radiance"]))
-            G.append(_srgb(ts.images[k, ::stride, ::stride])); IN.append(inner); RIM.append(m & ~inner)
+            P.append(srgb_np(r["pbr"])); R.append(srgb_np(r["radiance"]))
+            G.append(srgb_np(ts.images[k, ::stride, ::stride])); IN.append(inner); RIM.append(m & ~inner)
     P, R, G, IN, RIM = map(np.stack, (P, R, G, IN, RIM))
     ne = np.concatenate(nerr)
-    return {"pbr_inside": _psnr(P, G, IN), "pbr_rim": _psnr(P, G, RIM), "radiance_inside": _psnr(R, G, IN),
+    return {"pbr_inside": psnr(P, G, IN), "pbr_rim": psnr(P, G, RIM), "radiance_inside": psnr(R, G, IN),
             "normal_err_mean_deg": float(ne.mean()), "normal_err_p95_deg": float(np.percentile(ne, 95)),
             "metallic_mean": float(np.concatenate(metal).mean()), "roughness_mean": float(np.concatenate(rough).mean())}
 

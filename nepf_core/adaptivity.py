@@ -20,7 +20,7 @@ Rules (each decision is logged with its step and reason):
   share of the surface PBR (with and without it, no grad) < ``spec_thr``. Measured spreads
   (fast preset): sphere_diffuse (Lambertian) 1.7 % at step 400 and 0.76-0.85 % at 600 s;
   torus_glossy 4.2-7.4 % over steps 300-900; spot_textured (roughness 0.6 dielectric)
-  4.2-5.6 %. The material rule alone never fires on the sphere: metallic stays ~0.5 and the
+  4.2-5.7 %. The material rule alone never fires on the sphere: metallic stays ~0.5 and the
   lobe takes 9-14 % of L_surf there (the optimiser darkens the diffuse with metallic and
   shapes the shading with the lobe), and that lobe does not generalise: with it, held-out PBR
   PSNR inside the silhouette was 34.6 dB against 56.6 dB for the radiance network on the
@@ -240,7 +240,7 @@ class Adaptivity:
     def wants_specular_stats(self, step: int) -> bool:
         return self.enabled and step > 0 and step % self.check_every == 0
 
-    def check_view_spread(self, model, out, rays, generator: torch.Generator | None = None) -> None:
+    def check_view_spread(self, model, out, rays) -> None:
         """At a specular check (before :meth:`on_step`): how much the learned outgoing radiance
         changes with the viewpoint at the surface (:func:`nepf_core.view_dependence.radiance_view_spread`
         at the max-weight points of up to ``view_points`` foreground rays of the batch, over the

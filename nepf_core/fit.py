@@ -412,7 +412,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
                     if top.sum() > 0:
                         adapt.on_highlight_residual(step, float(err[top].mean() / err.median().clamp_min(1e-4)))
             if need_extras:
-                adapt.check_view_spread(model, out, rays, generator=gen)
+                adapt.check_view_spread(model, out, rays)
             adapt.on_step(step, out, losses)   # after the checks above, whose statistics it logs
             if tc.target_samples > 0 and out.n_head_evals > 0:
                 ratio = tc.target_samples / out.n_head_evals
