@@ -61,6 +61,10 @@ class TrainConfig:
     amp: bool = False
     """bf16 autocast for the head networks on CUDA (never on CPU); the SDF and density stay fp32
     (RenderConfig.amp_heads). No GradScaler: bf16 has fp32's exponent range."""
+    ema_decay: float = 0.0
+    """> 0: keep an exponential moving average of the parameters with this decay
+    (:mod:`nepf_core.weight_average`) and use it for held-out evaluation and the saved model
+    (render / export / eval); training uses the live weights. 0: off (the paper)."""
     adaptive: bool = True
     """Let fit() leave out what the scene does not need (see report.json)."""
     plateau_patience: int = 3
@@ -146,7 +150,7 @@ def fast() -> NePFConfig:
         loss=LossConfig(w_hessian=0.0, w_albedo_smooth=2e-4),
         train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,
                           anneal_end=2000, log_every=20, sync_every=500, checkpoint_every=1000,
-                          eval_every_s=60.0, eval_stride=1, target_samples=0),
+                          eval_every_s=60.0, eval_stride=1, target_samples=0, ema_decay=0.995),
     )
 
 

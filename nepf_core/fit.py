@@ -33,6 +33,7 @@ from nepf_core.losses import compute_losses, srgb_encode
 from nepf_core.model import ModelFieldQuery, NePFModel
 from nepf_core.rays import PixelSampler, foreground_peaks, unlit_threshold
 from nepf_core.render.renderer import render_rays
+from nepf_core.weight_average import ParamEMA
 
 
 class FitError(RuntimeError):
@@ -264,6 +265,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
     except (RuntimeError, TypeError):
         optimizer = torch.optim.Adam(_param_groups(model, cfg), betas=(0.9, 0.99), eps=1e-15)
     gen = torch.Generator().manual_seed(tc.seed)
+    ema = ParamEMA(model, tc.ema_decay) if tc.ema_decay > 0 else None
     sampler = PixelSampler(scene, dev)
     unlit_thr = (unlit_threshold(scene.images, scene.masks, cfg.render.unlit_rel_threshold)
                  if cfg.render.unlit_albedo_stopgrad else None)
@@ -284,6 +286,8 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
         step, wall_prev = int(st["step"]), float(st["wall_s"])
         nonfinite = int(st["extra"].get("nonfinite", 0))
         adapt.load_state(st["extra"].get("adaptivity", {}))
+        if ema is not None and "ema" in st["extra"]:
+            ema.load_state_dict(st["extra"]["ema"])
         log(f"resumed from step {step}")
     elif not resume:
         for f in ("metrics.jsonl",):
@@ -324,6 +328,8 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
         t0 = time.perf_counter()
         extra = {"nonfinite": nonfinite, "adaptivity": adapt.state(), "config_name": cfg.name,
                  "world_from_norm": np.asarray(scene.world_from_norm, dtype=np.float64).tolist()}
+        if ema is not None:
+            extra["ema"] = ema.state_dict()
         path = run / "checkpoints" / f"ckpt_{step:07d}.pt"
         save_checkpoint(path, model=model, optimizer=optimizer, step=step, wall_s=wall(), generator=gen, extra=extra)
         save_checkpoint(latest, model=model, optimizer=optimizer, step=step, wall_s=wall(), generator=gen, extra=extra)
@@ -338,7 +344,11 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
         t0 = time.perf_counter()
         w_train = wall()  # training time at the start of this evaluation (the evaluation is excluded)
         emit_progress("evaluating")
-        rec = evaluate_test(model, cfg, targets, dev, scene.world_from_norm, tc.eval_stride, with_chamfer=True)
+        if ema is not None:
+            with ema.applied(model):
+                rec = evaluate_test(model, cfg, targets, dev, scene.world_from_norm, tc.eval_stride, with_chamfer=True)
+        else:
+            rec = evaluate_test(model, cfg, targets, dev, scene.world_from_norm, tc.eval_stride, with_chamfer=True)
         rec.update({"kind": "test", "step": step, "wall_s": round(w_train, 3), "final": final})
         mlog.write(rec)
         last_test = rec
@@ -349,6 +359,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
     model.train()
     emit_progress("training")
     t_log, n_rays_acc, n_samp_acc = time.perf_counter(), 0, 0
+    shading_prev = (cfg.render.specular, cfg.render.diffuse_metal_weight)
     try:
         while step < total:
             if cb.stop_requested():
@@ -390,6 +401,8 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
                 ok = bool(torch.isfinite(gn))
             if ok:
                 optimizer.step()
+                if ema is not None:
+                    ema.update(model)
             else:
                 nonfinite += 1
                 optimizer.zero_grad(set_to_none=True)
@@ -414,6 +427,10 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
             if need_extras:
                 adapt.check_view_spread(model, out, rays)
             adapt.on_step(step, out, losses)   # after the checks above, whose statistics it logs
+            shading = (cfg.render.specular, cfg.render.diffuse_metal_weight)
+            if ema is not None and shading != shading_prev:
+                ema.reset(model)  # weights averaged across a change of the shading model do not fit it
+            shading_prev = shading
             if tc.target_samples > 0 and out.n_head_evals > 0:
                 ratio = tc.target_samples / out.n_head_evals
                 batch = int(min(max(batch * min(max(ratio, 0.8), 1.25), 128), 8 * tc.batch_rays))
@@ -466,6 +483,13 @@ def load_model(run_dir, device: str = "auto") -> tuple[NePFModel, NePFConfig, di
     model = NePFModel(cfg.model).to(dev)
     state = torch.load(ck, map_location=dev, weights_only=False)
     model.load_state_dict(state["model"])
+    ema = (state.get("extra") or {}).get("ema")
+    if ema:  # the averaged weights are the run's model (nepf_core.weight_average)
+        with torch.no_grad():
+            params = dict(model.named_parameters())
+            for name, value in ema["params"].items():
+                if name in params:
+                    params[name].copy_(value.to(params[name].device, params[name].dtype))
     # config.json is written before training; a lobe dropped during training stays dropped
     switches = (state.get("extra") or {}).get("adaptivity") or {}
     if "specular" in switches:

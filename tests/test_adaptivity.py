@@ -633,7 +633,13 @@ def test_fit_that_drops_the_lobe_exports_the_diffuse_equivalent_material(tmp_pat
     scene = load_scene(tmp_path / "s" / "dtu")
     cfg = tiny()
     cfg.train.iters, cfg.train.batch_rays, cfg.train.log_every, cfg.train.sync_every = 20, 128, 1, 0
+    cfg.train.ema_decay = 0.9
     fit(scene, tmp_path / "run", cfg, device="cpu")
+    # the weight average restarts at every step of the fade: at the end it is the live model
+    ck = torch.load(tmp_path / "run" / "checkpoints" / "latest.pt", weights_only=False)
+    assert ck["extra"]["ema"]["updates"] == 0
+    for name, value in ck["extra"]["ema"]["params"].items():
+        assert torch.equal(value, ck["model"][name]), name
     rep = json.loads((tmp_path / "run" / "report.json").read_text())
     d = [x for x in rep["decisions"] if x["decision"] == "specular_lobe"]
     assert d and d[0]["value"] is False and rep["final_switches"]["specular"] is False
