@@ -17,6 +17,7 @@ import json
 import math
 import os
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -344,10 +345,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
         t0 = time.perf_counter()
         w_train = wall()  # training time at the start of this evaluation (the evaluation is excluded)
         emit_progress("evaluating")
-        if ema is not None:
-            with ema.applied(model):
-                rec = evaluate_test(model, cfg, targets, dev, scene.world_from_norm, tc.eval_stride, with_chamfer=True)
-        else:
+        with ema.applied(model) if ema is not None else nullcontext():
             rec = evaluate_test(model, cfg, targets, dev, scene.world_from_norm, tc.eval_stride, with_chamfer=True)
         rec.update({"kind": "test", "step": step, "wall_s": round(w_train, 3), "final": final})
         mlog.write(rec)
@@ -484,12 +482,8 @@ def load_model(run_dir, device: str = "auto") -> tuple[NePFModel, NePFConfig, di
     state = torch.load(ck, map_location=dev, weights_only=False)
     model.load_state_dict(state["model"])
     ema = (state.get("extra") or {}).get("ema")
-    if ema:  # the averaged weights are the run's model (nepf_core.weight_average)
-        with torch.no_grad():
-            params = dict(model.named_parameters())
-            for name, value in ema["params"].items():
-                if name in params:
-                    params[name].copy_(value.to(params[name].device, params[name].dtype))
+    if ema:  # the averaged weights are the run's model (nepf_core.weight_average); buffers stay
+        model.load_state_dict(ema["params"], strict=False)
     # config.json is written before training; a lobe dropped during training stays dropped
     switches = (state.get("extra") or {}).get("adaptivity") or {}
     if "specular" in switches:
