@@ -70,10 +70,12 @@ class TrainConfig:
     plateau_patience: int = 3
     """Early stop after this many held-out evaluations without 0.1 dB gain (only when the
     iteration count was not fixed by the user)..."""
+    plateau_window: int = 3
+    """The plateau rule compares the mean of the last this-many evaluations (1: single ones)."""
     plateau_min_frac: float = 0.5
     """...and only when those evaluations also span this share of the training time so far
     (``t - t_best >= plateau_min_frac * t``)."""
-    plateau_cooldown_frac: float = 0.1
+    plateau_cooldown_frac: float = 0.25
     """After the plateau rule fires, anneal the learning rate to ``lr_alpha`` over this share of
     the training time so far, then stop (0: stop at once)."""
 
