@@ -93,8 +93,25 @@ def _groups(runs: list[dict]) -> dict[tuple, list[dict]]:
     for r in runs:
         g.setdefault((r["scene"], r["config"], r["variant"]), []).append(r)
     for v in g.values():
-        v.sort(key=lambda r: r.get("repeat", 0))
+        v.sort(key=lambda r: (r.get("repeat", 0), run_seed(r)))
     return g
+
+
+def run_seed(rec: dict) -> int:
+    """``train.seed`` of a run: its ``--override`` if any, else its repeat index (bench/run.py)."""
+    ov = rec.get("overrides") or {}
+    return int(ov.get("train.seed", rec.get("repeat", 0)))
+
+
+def tail_mean(rec: dict, frac: float = 0.1) -> float | None:
+    """Mean masked test PSNR of the evaluations in the last ``frac`` of the run's training time
+    (``wall_s >= (1 - frac) * last wall_s``): one evaluation moves by up to ~1 dB on spot_textured."""
+    c = [t for t in _curve(rec) if _finite(t.get("test_psnr"))]
+    if not c:
+        return None
+    t_end = float(c[-1]["wall_s"])
+    vals = [t["test_psnr"] for t in c if float(t["wall_s"]) >= (1.0 - frac) * t_end]
+    return sum(vals) / len(vals)
 
 
 def _median_time(recs: list[dict], target_of) -> dict:
@@ -189,9 +206,16 @@ def summarize(results: dict, target_psnr: float | None = None) -> dict:
                         "saved_pct": (100.0 * (tb - ta) / tb) if ta is not None and tb else None,
                         "s_per_step_adaptive": _sps(a), "s_per_step_all_on": _sps(b),
                         "chamfer_adaptive": chamfer_of(a)[0], "chamfer_all_on": chamfer_of(b)[0],
+                        "seed": run_seed(a), "steps_adaptive": a.get("steps"), "steps_all_on": b.get("steps"),
+                        "wall_adaptive": a.get("train_wall_s"), "wall_all_on": b.get("train_wall_s"),
+                        "tail_adaptive": tail_mean(a), "tail_all_on": tail_mean(b),
                         "albedo_adaptive": final_test(a).get("albedo_psnr"),
                         "albedo_all_on": final_test(b).get("albedo_psnr"),
                         "left_out": _left_out(a)})
+            tt = min(per[-1]["tail_adaptive"], per[-1]["tail_all_on"]) \
+                if _finite(per[-1]["tail_adaptive"]) and _finite(per[-1]["tail_all_on"]) else None
+            tta, ttb = time_to_reach(a, tt), time_to_reach(b, tt)
+            per[-1]["tail_saved_pct"] = (100.0 * (ttb - tta) / ttb) if tta is not None and ttb else None
         row = {"scene": scene, "config": config, "baseline": baseline, "n": len(per), "per_repeat": per}
         for k in ("target", "final_adaptive", "final_all_on", "diff", "t_adaptive", "t_all_on", "saved_pct",
                   "s_per_step_adaptive", "s_per_step_all_on", "chamfer_adaptive", "chamfer_all_on",
@@ -302,6 +326,26 @@ def write_table(results: dict, summary: dict, path: Path) -> None:
                      f"{_fmt(x['chamfer_adaptive'], 5)} / {_fmt(x['chamfer_all_on'], 5)} | "
                      f"{_fmt(x['albedo_adaptive'])} / {_fmt(x['albedo_all_on'])} | "
                      f"{'; '.join(x['left_out']) or '-'} |")
+        L.append("")
+        L += ["### Per pair", "",
+              "Matched by seed (`train.seed`). final = last evaluation; tail = mean of the evaluations in the "
+              "last 10 % of each run's training time; time saved to the pair's lower final, and to the lower "
+              "tail mean (first evaluation at or above it).", "",
+              "| scene | baseline | seed | steps adaptive / baseline | train s adaptive / baseline | final adaptive / baseline (dB) | "
+              "diff | t to lower final adaptive / baseline (s) | saved | tail adaptive / baseline (dB) | saved to lower tail | "
+              "albedo adaptive / baseline | Chamfer adaptive / baseline |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for x in summary["adaptive_vs_all_on"]:
+            for p in x["per_repeat"]:
+                ta_, tb_ = p["tail_adaptive"], p["tail_all_on"]
+                sv = p.get("tail_saved_pct")
+                L.append(f"| {x['scene']} | {x['baseline']} | {p['seed']} | {_fmt(p['steps_adaptive'], 0)} / "
+                         f"{_fmt(p['steps_all_on'], 0)} | {_fmt(p['wall_adaptive'], 0)} / {_fmt(p['wall_all_on'], 0)} | "
+                         f"{_fmt(p['final_adaptive'])} / {_fmt(p['final_all_on'])} | {_fmt(p['diff'])} | "
+                         f"{_fmt_t(p['t_adaptive'])} / {_fmt_t(p['t_all_on'])} | {_fmt(p['saved_pct'], 0)}% | "
+                         f"{_fmt(ta_)} / {_fmt(tb_)} | {_fmt(sv, 0)}% | "
+                         f"{_fmt(p['albedo_adaptive'])} / {_fmt(p['albedo_all_on'])} | "
+                         f"{_fmt(p['chamfer_adaptive'], 5)} / {_fmt(p['chamfer_all_on'], 5)} |")
         L.append("")
     real = [r for r in results.get("runs", []) if r.get("mode") == "real"]
     if real:

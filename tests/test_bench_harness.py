@@ -196,3 +196,28 @@ def test_baked_albedo_of_gt_mesh_with_constant_texture(scenes_root, tmp_path):
     assert res["hit_outside_gt_fg"] < 0.05
     assert res["albedo_psnr"] > 35
     assert res["export_s"] == 12.5 and res["glb_bytes"] > 0
+
+
+def test_pairs_match_by_seed_and_tail_means(tmp_path):
+    """Runs merged from one-repeat benchmarks (seed set by --override) pair by seed, whatever
+    the merge order; the tail mean is over the last 10 % of the training time."""
+    from bench.report import summarize, tail_mean, write_table
+    a1 = _rec("s", "fast", "adaptive", [(100, 20.0), (800, 24.0), (900, 26.0), (1000, 25.0)],
+              overrides={"train.seed": 1})
+    a0 = _rec("s", "fast", "adaptive", [(100, 22.0), (200, 23.0)], overrides={"train.seed": 0})
+    b0 = _rec("s", "fast", "all_on", [(100, 21.0), (200, 22.5)], overrides={"train.seed": 0})
+    b1 = _rec("s", "fast", "all_on", [(100, 19.0), (500, 24.5), (1000, 25.5)], overrides={"train.seed": 1})
+    # tail of a1: evaluations at >= 900 s -> (26 + 25) / 2; of a0: >= 180 s -> 23
+    assert tail_mean(a1) == pytest.approx(25.5) and tail_mean(a0) == 23.0 and tail_mean({"test_curve": []}) is None
+    (row,) = summarize({"runs": [a1, b0, a0, b1]})["adaptive_vs_all_on"]
+    p0, p1 = row["per_repeat"]
+    assert (p0["seed"], p1["seed"]) == (0, 1)
+    # seed 0: lower final 22.5: adaptive at 200 s, all_on at 200 s; tails 23 / 22.5 -> same
+    assert p0["t_adaptive"] == 200 and p0["t_all_on"] == 200 and p0["saved_pct"] == 0.0
+    # seed 1: finals 25 / 25.5 -> target 25: adaptive at 900 s, all_on at 1000 s (10 % saved);
+    # tails 25.5 / 25.5 -> adaptive first >= 25.5 at 900 s, all_on at 1000 s
+    assert p1["target"] == 25.0 and p1["saved_pct"] == pytest.approx(10.0)
+    assert p1["tail_adaptive"] == pytest.approx(25.5) and p1["tail_saved_pct"] == pytest.approx(10.0)
+    write_table({"runs": [a1, b0, a0, b1]}, summarize({"runs": [a1, b0, a0, b1]}), tmp_path / "t.md")
+    table = (tmp_path / "t.md").read_text()
+    assert "| s | all_on | 1 | 100 / 100 | 1000 / 1000 | 25.00 / 25.50 | -0.50 | 900 / 1000 | 10% | 25.50 / 25.50 | 10% |" in table
