@@ -170,3 +170,41 @@ def test_diffuse_only_material_renders_the_same_as_the_faded_diffuse(lambertian,
     f2 = bsdf_eval(n, l, v, c2, r, m2, lambertian=lambertian, specular=False)
     assert torch.allclose(f1, f2, atol=1e-7, rtol=1e-5)
     assert f1.abs().max() > 0.01
+
+
+def test_adaptivity_measures_the_spread_on_lit_pixels_only():
+    """A near-mirror under a grazing light: most pixels are black, and a black point shows no
+    highlight in any view. Points at x < 0 (their pixels unlit) have a flat radiance, points at
+    x >= 0 one bright view of three (h = 0.3). On all points the spread would be diluted;
+    ``check_view_spread`` skips unlit rays and gets the lit points' hand-worked
+    h / (1 + h / 3); with fewer than 8 lit points it measures nothing."""
+    from types import SimpleNamespace
+
+    from nepf_core.adaptivity import Adaptivity
+    from nepf_core.config import tiny
+
+    h, base = 0.3, 0.5
+
+    def rad(x, v, g, feat):
+        y = torch.full((x.shape[0],), base)
+        y = torch.where((v[:, 1] < -0.1) & (x[:, 0] >= 0), base * (1 + h), y)
+        return y[:, None].expand(-1, 3)
+    model = SimpleNamespace(sdf=_PlaneSDF(), radiance=rad)
+    x = _points(64)
+    unlit = x[:, 0] < 0
+    assert 8 <= int((~unlit).sum()) < 64
+    a = Adaptivity(tiny(), enabled=True, iters_fixed=True)
+    a._cams = CAMS
+    out = SimpleNamespace(weight_sum=torch.ones(64), surf={"x": x})
+    a.check_view_spread(model, out, SimpleNamespace(mask=None, unlit=None))
+    n_lit = int((~unlit).sum())
+    diluted = n_lit * base * h / (64 * base + n_lit * base * h / 3)
+    assert a._view_spread == pytest.approx(diluted, rel=1e-5)
+    a.check_view_spread(model, out, SimpleNamespace(mask=None, unlit=unlit))
+    assert a._view_spread == pytest.approx(h / (1 + h / 3), rel=1e-5)
+    b = Adaptivity(tiny(), enabled=True, iters_fixed=True)
+    b._cams = CAMS
+    few = torch.ones(64, dtype=torch.bool)
+    few[:7] = False                                          # 7 lit points: no measurement
+    b.check_view_spread(model, out, SimpleNamespace(mask=None, unlit=few))
+    assert b._view_spread is None
