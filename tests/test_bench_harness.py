@@ -227,3 +227,22 @@ def test_pairs_match_by_seed_and_tail_means(tmp_path):
     write_table({"runs": [a1, b0, a0, b1]}, summarize({"runs": [a1, b0, a0, b1]}), tmp_path / "t.md")
     table = (tmp_path / "t.md").read_text()
     assert "| s | all_on | 1 | 100 / 100 | 1000 / 1000 | 25.00 / 25.50 | -0.50 | 900 / 1000 | 10% | 25.50 / 25.50 | 10% | 900 / 1000 | 10% |" in table
+
+
+def test_ema_probe_summary_over_the_last_half(tmp_path):
+    """bench.ema_probe's summary: per weight set, the evaluations at >= half the last training
+    time, their mean and mean absolute change, and the final value."""
+    from bench.ema_probe import summarize_probe
+    walls = (100.0, 200.0, 300.0, 400.0)
+    (tmp_path / "metrics.jsonl").write_text("\n".join(
+        json.dumps({"kind": "test", "step": 10 * k, "wall_s": w}) for k, w in enumerate(walls)) + "\n"
+        + json.dumps({"kind": "train", "step": 5, "wall_s": 50.0}) + "\n")
+    rows = []
+    for k, (a, live) in enumerate(((20.0, 19.0), (22.0, 21.0), (24.0, 25.0), (25.0, 23.0)), 1):
+        rows += [{"eval": k, "weights": "ema 0.995", "test_psnr": a}, {"eval": k, "weights": "live", "test_psnr": live}]
+    (tmp_path / "probe.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    s = summarize_probe(tmp_path / "probe.jsonl", tmp_path / "metrics.jsonl")
+    # last half: walls >= 200 -> evaluations 2, 3, 4
+    assert s["ema 0.995"]["n_late"] == 3 and s["ema 0.995"]["mean_late"] == pytest.approx(71.0 / 3)
+    assert s["ema 0.995"]["mean_abs_change_late"] == pytest.approx(1.5) and s["ema 0.995"]["final"] == 25.0
+    assert s["live"]["mean_late"] == pytest.approx(23.0) and s["live"]["mean_abs_change_late"] == pytest.approx(3.0)
