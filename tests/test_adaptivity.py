@@ -632,6 +632,7 @@ def test_fit_that_drops_the_lobe_exports_the_diffuse_equivalent_material(tmp_pat
     monkeypatch.setattr(Adaptivity, "check_every", 5)
     monkeypatch.setattr(Adaptivity, "patience", 1)
     monkeypatch.setattr(Adaptivity, "view_spread_thr", 1.0)
+    monkeypatch.setattr(Adaptivity, "radiance_fit_max", float("inf"))  # 20 steps do not fit the radiance
     # enough views that surface points face two cameras within 53 degrees (min_cos 0.6)
     make_scene(tmp_path / "s", n_views=16, n_test=0, resolution=24, supersample=1, write_mesh=False)
     scene = load_scene(tmp_path / "s" / "dtu")
@@ -649,6 +650,7 @@ def test_fit_that_drops_the_lobe_exports_the_diffuse_equivalent_material(tmp_pat
     assert d and d[0]["value"] is False and rep["final_switches"]["specular"] is False
     train = [r for r in _records(tmp_path / "run") if r.get("kind", "train") == "train"]
     assert any("radiance_view_spread" in r for r in train)
+    assert any(r.get("radiance_fit_error_lit", -1) > 0 for r in train)
     assert train[-1]["specular_on"] is False
     model, cfg2, _ = load_model(tmp_path / "run", "cpu")
     assert cfg2.render.specular is False

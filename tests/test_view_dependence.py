@@ -177,7 +177,8 @@ def test_adaptivity_measures_the_spread_on_lit_pixels_only():
     highlight in any view. Points at x < 0 (their pixels unlit) have a flat radiance, points at
     x >= 0 one bright view of three (h = 0.3). On all points the spread would be diluted;
     ``check_view_spread`` skips unlit rays and gets the lit points' hand-worked
-    h / (1 + h / 3); with fewer than 8 lit points it measures nothing."""
+    h / (1 + h / 3); with fewer than 8 lit points, or while the radiance misses the lit pixels
+    by more than 25 %, it measures nothing (the material decides then)."""
     from types import SimpleNamespace
 
     from nepf_core.adaptivity import Adaptivity
@@ -202,6 +203,14 @@ def test_adaptivity_measures_the_spread_on_lit_pixels_only():
     assert a._view_spread == pytest.approx(diluted, rel=1e-5)
     a.check_view_spread(model, out, SimpleNamespace(mask=None, unlit=unlit))
     assert a._view_spread == pytest.approx(h / (1 + h / 3), rel=1e-5)
+    # a radiance that does not explain the lit pixels is no evidence: relative L1 error
+    # sum |L_r - I| / sum |I| over the lit foreground; 0.2 passes, 0.3 > 0.25 leaves no measurement
+    gt = torch.full((64, 3), 0.4)
+    for rel, measured in ((0.2, True), (0.3, False)):
+        out.rgb_r = gt * (1.0 - rel)
+        a.check_view_spread(model, out, SimpleNamespace(mask=None, unlit=unlit, rgb=gt))
+        assert a._fit_err == pytest.approx(rel, rel=1e-5)
+        assert (a._view_spread is not None) is measured
     b = Adaptivity(tiny(), enabled=True, iters_fixed=True)
     b._cams = CAMS
     few = torch.ones(64, dtype=torch.bool)
