@@ -131,7 +131,7 @@ def test_kill9_real_pipeline_resumes_from_checkpoint(stack, worker):
     base, h = stack["base"], stack["h"]
     env = dict(REAL_PIPELINE_ENV, NEPF_CHECKPOINT_EVERY="2", NEPF_LEASE_S="4")
     w1 = worker("real-w1", **env)
-    iters = 8
+    iters = 200   # long enough that the kill lands mid-run (with 8 the job once finished between poll and kill)
     jid = upload(base, h, real_scene_zip(stack["tmp"]), {"preset": "tiny", "iters": iters}).json()["id"]
     ckpt = stack["data"] / "jobs" / jid / "run" / "checkpoints" / "latest.pt"
     wait_for(lambda: ckpt.exists() and get_job(base, h, jid)["progress"]["step"] >= 3, 180, what="a checkpoint")
