@@ -206,7 +206,7 @@ def summarize(results: dict, target_psnr: float | None = None) -> dict:
             ta, tb = time_to_reach(a, target), time_to_reach(b, target)
             per.append({"target": target, "final_adaptive": fa, "final_all_on": fb,
                         "diff": (fa - fb) if target is not None else None, "t_adaptive": ta, "t_all_on": tb,
-                        "saved_pct": (100.0 * (tb - ta) / tb) if ta is not None and tb else None,
+                        "saved_pct": _saved_pct(ta, tb),
                         "s_per_step_adaptive": _sps(a), "s_per_step_all_on": _sps(b),
                         "chamfer_adaptive": chamfer_of(a)[0], "chamfer_all_on": chamfer_of(b)[0],
                         "seed": run_seed(a), "steps_adaptive": a.get("steps"), "steps_all_on": b.get("steps"),
@@ -218,13 +218,13 @@ def summarize(results: dict, target_psnr: float | None = None) -> dict:
             tt = min(per[-1]["tail_adaptive"], per[-1]["tail_all_on"]) \
                 if _finite(per[-1]["tail_adaptive"]) and _finite(per[-1]["tail_all_on"]) else None
             tta, ttb = time_to_reach(a, tt), time_to_reach(b, tt)
-            per[-1]["tail_saved_pct"] = (100.0 * (ttb - tta) / ttb) if tta is not None and ttb else None
+            per[-1]["tail_saved_pct"] = _saved_pct(tta, ttb)
             # the issue's tolerance read literally: the adaptive run's time to come within
             # TOLERANCE_DB of the baseline's final, against the baseline's time to its final
             tol_a = time_to_reach(a, fb - TOLERANCE_DB) if _finite(fb) else None
             tol_b = time_to_reach(b, fb) if _finite(fb) else None
             per[-1].update({"t_adaptive_tol": tol_a, "t_all_on_tol": tol_b,
-                            "tol_saved_pct": (100.0 * (tol_b - tol_a) / tol_b) if tol_a is not None and tol_b else None})
+                            "tol_saved_pct": _saved_pct(tol_a, tol_b)})
         row = {"scene": scene, "config": config, "baseline": baseline, "n": len(per), "per_repeat": per}
         for k in ("target", "final_adaptive", "final_all_on", "diff", "t_adaptive", "t_all_on", "saved_pct",
                   "s_per_step_adaptive", "s_per_step_all_on", "chamfer_adaptive", "chamfer_all_on",
@@ -234,6 +234,11 @@ def summarize(results: dict, target_psnr: float | None = None) -> dict:
         row["left_out"] = per[0]["left_out"] if per else []
         adaptive_vs_all_on.append(row)
     return {"rows": rows, "fast_vs_paper": fast_vs_paper, "adaptive_vs_all_on": adaptive_vs_all_on}
+
+
+def _saved_pct(t_adaptive, t_baseline):
+    """Time saved by the adaptive run, ``100 (t_b - t_a) / t_b`` (None when either is missing)."""
+    return 100.0 * (t_baseline - t_adaptive) / t_baseline if t_adaptive is not None and t_baseline else None
 
 
 def _sps(r: dict):

@@ -448,11 +448,12 @@ class Adaptivity:
         v = rec.get("test_psnr")
         if v is None or not math.isfinite(v):
             return
-        self._recent = (self._recent + [float(v)])[-max(int(self.cfg.train.plateau_window), 1):]
+        window = max(int(self.cfg.train.plateau_window), 1)
+        self._recent = (self._recent + [float(v)])[-window:]
         v = sum(self._recent) / len(self._recent)
         wall = rec.get("wall_s")
         growing = progress is not None and progress < self.plateau_min_progress()
-        if len(self._recent) < max(int(self.cfg.train.plateau_window), 1):
+        if len(self._recent) < window:
             # a mean of fewer evaluations is noisier than the rule assumes: no bar yet (the first
             # full mean sets it)
             self._best_psnr, self._best_wall, self._evals_since_best = -math.inf, wall, 0
