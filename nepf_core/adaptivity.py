@@ -84,6 +84,7 @@ class Adaptivity:
     min_coarse_samples = 8
     miss_keep = 0.1
     coarse_spacing_cells = 0.5
+    drop_intensity_variance = True
 
     def __init__(self, cfg, *, enabled: bool, iters_fixed: bool) -> None:
         self.cfg = cfg
@@ -114,6 +115,7 @@ class Adaptivity:
         self._view_spread = None
         self._fit_err = None
         self._fade_start = None
+        self._lambda3_saved = None
 
     # -- bookkeeping --
     def record(self, decision: str, value, reason: str, step: int = 0) -> None:
@@ -128,7 +130,8 @@ class Adaptivity:
                 "skip_sum": self._skip_sum, "skip_n": self._skip_n, "occ_len": self._occ_len,
                 "n_samples_occupied": self.cfg.render.n_samples_occupied,
                 "drop_sum": self._drop_sum, "drop_n": self._drop_n, "view_spread": self._view_spread,
-                "fade_start": self._fade_start, "diffuse_metal_weight": self.cfg.render.diffuse_metal_weight}
+                "fade_start": self._fade_start, "diffuse_metal_weight": self.cfg.render.diffuse_metal_weight,
+                "lambda3": self.cfg.loss.lambda3, "lambda3_saved": self._lambda3_saved}
 
     def load_state(self, s: dict) -> None:
         if not s:
@@ -152,6 +155,8 @@ class Adaptivity:
         self._fade_start = s.get("fade_start")
         self.cfg.render.diffuse_metal_weight = s.get("diffuse_metal_weight", self.cfg.render.diffuse_metal_weight)
         self.cfg.render.n_samples_occupied = s.get("n_samples_occupied", self.cfg.render.n_samples_occupied)
+        self.cfg.loss.lambda3 = s.get("lambda3", self.cfg.loss.lambda3)
+        self._lambda3_saved = s.get("lambda3_saved")
 
     # -- before training --
     def decide_before_training(self, scene) -> None:
@@ -345,28 +350,46 @@ class Adaptivity:
             if diffuse:
                 self._diffuse_streak += 1
                 if self._diffuse_streak >= self.patience:
-                    self.cfg.render.specular = False
-                    self.cfg.render.diffuse_metal_weight = 1.0   # same image at the drop, then fades
-                    self._fade_start = step
                     why = (f"the learned radiance is view-independent: it changes by {spread:.2%} across the training "
                            f"cameras (< {self.view_spread_thr:.1%})" if flat else
                            f"mean metallic {metal:.3f} < {self.metal_thr}, specular share {share:.3%} < {self.spec_thr:.0%}")
-                    self.record("specular_lobe", False, f"scene looks diffuse: {why} for {self.patience} checks "
-                                f"(at the drop: metallic {metal:.3f}, lobe share {share:.1%}); the GGX lobe is no longer "
-                                f"evaluated; the diffuse (1 - m) f_d(c) fades to a dielectric f_d(c) over {self.lobe_fade_steps} steps "
-                                "(the asset carries the shaded material, metallic 0)",
-                                step)
+                    self._set_lobe(False, step, f"scene looks diffuse: {why} for {self.patience} checks "
+                                   f"(at the drop: metallic {metal:.3f}, lobe share {share:.1%}); the GGX lobe is no longer "
+                                   f"evaluated; the diffuse (1 - m) f_d(c) fades to a dielectric f_d(c) over {self.lobe_fade_steps} steps "
+                                   "(the asset carries the shaded material, metallic 0)")
             else:
                 self._diffuse_streak = 0
         elif spread is not None and spread > 2 * self.view_spread_thr:
-            self.cfg.render.specular = True
-            self._diffuse_streak = 0
-            self.record("specular_lobe", True, f"the learned radiance now changes by {spread:.2%} across the training "
-                        f"cameras (> {2 * self.view_spread_thr:.1%})", step)
+            self._set_lobe(True, step, f"the learned radiance now changes by {spread:.2%} across the training "
+                           f"cameras (> {2 * self.view_spread_thr:.1%})")
         elif spread is None and share > 2 * self.spec_thr:
-            self.cfg.render.specular = True
-            self._diffuse_streak = 0
-            self.record("specular_lobe", True, f"specular share would be {share:.3%} > {2 * self.spec_thr:.0%}", step)
+            self._set_lobe(True, step, f"specular share would be {share:.3%} > {2 * self.spec_thr:.0%}")
+
+    def _set_lobe(self, on: bool, step: int, reason: str) -> None:
+        """Switch the GGX lobe and what goes with it, and record why.
+
+        Off: the diffuse starts at ``(1 - m) f_d(c)`` (the same image) and fades to ``f_d(c)``
+        (:meth:`_fade_metal`); with ``drop_intensity_variance`` the light loss's
+        ``lambda3 |var x - var I|`` term goes too. Diffuse-only shading ``c I(x) (n.l) / pi``
+        sees only the product of the albedo and the photon intensity, so that term, which asks
+        the intensity to vary as much as the positions do over the batch, can then only be met
+        by moving a pattern into the intensity and its inverse into the albedo. On: everything
+        is restored."""
+        r, loss = self.cfg.render, self.cfg.loss
+        r.specular = on
+        self._diffuse_streak = 0
+        self.record("specular_lobe", on, reason, step)
+        if not on:
+            r.diffuse_metal_weight = 1.0   # same image at the drop, then fades
+            self._fade_start = step
+            if self.drop_intensity_variance and loss.w_light > 0 and loss.lambda3 > 0:
+                self._lambda3_saved, loss.lambda3 = loss.lambda3, 0.0
+                self.record("light_intensity_variance", False,
+                            "specular lobe off: diffuse-only shading sees only albedo x intensity, so the light "
+                            "loss term lambda3 |var x - var I| could only trade a pattern between them", step)
+        elif self._lambda3_saved is not None:
+            loss.lambda3, self._lambda3_saved = self._lambda3_saved, None
+            self.record("light_intensity_variance", True, "specular lobe back on", step)
 
     def _fade_metal(self, step: int) -> None:
         """After a drop, ``render.diffuse_metal_weight = max(0, 1 - (step - t_drop) / lobe_fade_steps)``:
@@ -429,9 +452,7 @@ class Adaptivity:
         if self._view_spread is not None and self._view_spread < self.view_spread_thr:
             return
         if self.enabled and not self.cfg.render.specular and ratio > self.highlight_ratio:
-            self.cfg.render.specular = True
-            self._diffuse_streak = 0
-            self.record("specular_lobe", True, f"L_vol residual on the brightest 5% pixels is {ratio:.1f}x the median", step)
+            self._set_lobe(True, step, f"L_vol residual on the brightest 5% pixels is {ratio:.1f}x the median")
 
     def plateau_min_progress(self) -> float:
         """Training progress before which no plateau counts: a grid SDF still gains resolution
