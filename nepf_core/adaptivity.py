@@ -84,7 +84,6 @@ class Adaptivity:
     min_coarse_samples = 8
     miss_keep = 0.1
     coarse_spacing_cells = 0.5
-    drop_intensity_variance = True
 
     def __init__(self, cfg, *, enabled: bool, iters_fixed: bool) -> None:
         self.cfg = cfg
@@ -115,7 +114,6 @@ class Adaptivity:
         self._view_spread = None
         self._fit_err = None
         self._fade_start = None
-        self._lambda3_saved = None
 
     # -- bookkeeping --
     def record(self, decision: str, value, reason: str, step: int = 0) -> None:
@@ -130,8 +128,7 @@ class Adaptivity:
                 "skip_sum": self._skip_sum, "skip_n": self._skip_n, "occ_len": self._occ_len,
                 "n_samples_occupied": self.cfg.render.n_samples_occupied,
                 "drop_sum": self._drop_sum, "drop_n": self._drop_n, "view_spread": self._view_spread,
-                "fade_start": self._fade_start, "diffuse_metal_weight": self.cfg.render.diffuse_metal_weight,
-                "lambda3": self.cfg.loss.lambda3, "lambda3_saved": self._lambda3_saved}
+                "fade_start": self._fade_start, "diffuse_metal_weight": self.cfg.render.diffuse_metal_weight}
 
     def load_state(self, s: dict) -> None:
         if not s:
@@ -155,8 +152,6 @@ class Adaptivity:
         self._fade_start = s.get("fade_start")
         self.cfg.render.diffuse_metal_weight = s.get("diffuse_metal_weight", self.cfg.render.diffuse_metal_weight)
         self.cfg.render.n_samples_occupied = s.get("n_samples_occupied", self.cfg.render.n_samples_occupied)
-        self.cfg.loss.lambda3 = s.get("lambda3", self.cfg.loss.lambda3)
-        self._lambda3_saved = s.get("lambda3_saved")
 
     # -- before training --
     def decide_before_training(self, scene) -> None:
@@ -368,28 +363,16 @@ class Adaptivity:
     def _set_lobe(self, on: bool, step: int, reason: str) -> None:
         """Switch the GGX lobe and what goes with it, and record why.
 
-        Off: the diffuse starts at ``(1 - m) f_d(c)`` (the same image) and fades to ``f_d(c)``
-        (:meth:`_fade_metal`); with ``drop_intensity_variance`` the light loss's
-        ``lambda3 |var x - var I|`` term goes too. Diffuse-only shading ``c I(x) (n.l) / pi``
-        sees only the product of the albedo and the photon intensity, so that term, which asks
-        the intensity to vary as much as the positions do over the batch, can then only be met
-        by moving a pattern into the intensity and its inverse into the albedo. On: everything
-        is restored."""
-        r, loss = self.cfg.render, self.cfg.loss
+        Off: the shading fades from the full BSDF to a dielectric diffuse over
+        ``lobe_fade_steps`` (:meth:`_fade_metal`, :func:`nepf_core.bsdf.shade_fading_lobe`).
+        While it is off, the albedo flatness prior (``LossConfig.w_albedo_flat``) applies."""
+        r = self.cfg.render
         r.specular = on
         self._diffuse_streak = 0
         self.record("specular_lobe", on, reason, step)
         if not on:
             r.diffuse_metal_weight = 1.0   # same image at the drop, then fades
             self._fade_start = step
-            if self.drop_intensity_variance and loss.w_light > 0 and loss.lambda3 > 0:
-                self._lambda3_saved, loss.lambda3 = loss.lambda3, 0.0
-                self.record("light_intensity_variance", False,
-                            "specular lobe off: diffuse-only shading sees only albedo x intensity, so the light "
-                            "loss term lambda3 |var x - var I| could only trade a pattern between them", step)
-        elif self._lambda3_saved is not None:
-            loss.lambda3, self._lambda3_saved = self._lambda3_saved, None
-            self.record("light_intensity_variance", True, "specular lobe back on", step)
 
     def _fade_metal(self, step: int) -> None:
         """After a drop, ``render.diffuse_metal_weight = max(0, 1 - (step - t_drop) / lobe_fade_steps)``:

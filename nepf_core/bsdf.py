@@ -188,6 +188,23 @@ def shade(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor, me
     return f * intensity * dot(n, l).clamp_min(0.0)
 
 
+def shade_fading_lobe(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor, metallic: Tensor,
+                      intensity: Tensor, weight: float, *, lambertian: bool = False) -> Tensor:
+    """Shading while a dropped GGX lobe fades out:
+    ``L = ((1 - w m) f_d(c) + w f_s(c, r, m)) * I * max(n.l, 0)``.
+
+    ``w = 1`` is the full BSDF (the image just before the drop), ``w = 0`` a dielectric diffuse
+    (metallic ignored). Linear in ``w``, so the image changes by a bounded amount per step
+    while ``w`` goes from 1 to 0. Shapes: as :func:`shade`.
+    """
+    f_diffuse = bsdf_eval(n, l, v, albedo, roughness, weight * metallic, lambertian=lambertian, specular=False)
+    if weight <= 0.0:
+        return f_diffuse * intensity * dot(n, l).clamp_min(0.0)
+    f_lobe = (bsdf_eval(n, l, v, albedo, roughness, metallic, lambertian=lambertian, specular=True)
+              - bsdf_eval(n, l, v, albedo, roughness, metallic, lambertian=lambertian, specular=False))
+    return (f_diffuse + weight * f_lobe) * intensity * dot(n, l).clamp_min(0.0)
+
+
 def diffuse_only_material(albedo: Tensor, metallic: Tensor, weight: float = 0.0) -> tuple[Tensor, Tensor]:
     """The material rendered once the GGX lobe is dropped: ``(c, m) -> ((1 - w m) c, 0)``.
 

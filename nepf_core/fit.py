@@ -389,7 +389,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
             cfg.render.amp_heads = bool(tc.amp and dev.type == "cuda")
             out = render_rays(model, rays, cfg.render, train=True, cos_anneal=anneal, generator=gen,
                               need_surface_extras=need_extras)
-            losses = compute_losses(out, rays, cfg.loss, use_mask=use_mask)
+            losses = compute_losses(out, rays, cfg.loss, use_mask=use_mask, specular=cfg.render.specular)
             loss = losses["loss"]
             optimizer.zero_grad(set_to_none=True)
             ok = bool(torch.isfinite(loss))

@@ -12,6 +12,7 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_asm   = w_albedo_smooth * mean | c(x*) - c(x* + eps) |   (albedo smoothness prior, off in paper)
     L_met   = w_metallic * mean m(x*)                           (dielectric prior, off in paper)
     L_fill  = w_albedo_fill * mean_unlit | c(x*) - sg(mean_lit c(x*)) |   (unobserved albedo prior, off in paper)
+    L_flat  = w_albedo_flat * mean_lit | Y(c) / sg(mean_lit Y(c)) - 1 |, Y = channel mean   (lobe off only)
     L_mask  = w_mask * BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)
 
 With masks, colour terms average over foreground rays only (NeuS); ``L_surf`` and
@@ -63,6 +64,14 @@ class LossConfig:
     """Unlit surface rays pull their albedo toward the batch's mean lit albedo (stop-grad): where
     the light never reaches, no view constrains the albedo, and without a prior the material
     network extrapolates the dark radiance features to a black albedo. Needs ``RayBatch.unlit``."""
+    w_albedo_flat: float = 0.0
+    """Lobe off only (``compute_losses(..., specular=False)``): lit surface rays pull the
+    luminance of their albedo toward the batch's mean (stop-grad), relative L1. Diffuse-only
+    shading ``c I(x) (n.l) / pi`` sees only the product of the albedo and the scalar photon
+    intensity, so any pattern ``s(x)`` the photon network can represent moves freely between
+    them; this term gives it to the light (slow variation is illumination: the Retinex
+    assumption). Keep it well under ``lambda2_vol``: both are L1, so texture the intensity
+    cannot represent stays in the albedo while the colour terms outweigh it."""
     w_metallic: float = 0.0
     """Dielectric prior: mean metallic at the max-weight points of surface rays; not in the paper.
     Metallic also darkens the diffuse lobe (``(1 - m) f_d``), so without a prior a dark texture
@@ -110,8 +119,9 @@ def mask_bce(weight_sum: Tensor, mask: Tensor, ray_weight: Tensor | None = None)
     return (bce * ray_weight).sum() / ray_weight.sum().clamp_min(1e-12)
 
 
-def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool) -> dict[str, Tensor]:
-    """All enabled loss terms plus their weighted sum under ``"loss"``."""
+def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, specular: bool = True) -> dict[str, Tensor]:
+    """All enabled loss terms plus their weighted sum under ``"loss"``. ``specular``: whether
+    the render evaluated the GGX lobe (``RenderConfig.specular``); L_flat applies only without it."""
     enc = srgb_encode if cfg.color_space == "srgb" else (lambda t: t.clamp(0.0, 1.0))
     gt = enc(rays.rgb)
     fg = rays.mask if (use_mask and rays.mask is not None) else None
@@ -152,6 +162,14 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool) -> d
         if lit.any() and dark.any():
             ref = out.surf["albedo"][lit].detach().mean(0)
             L["loss_albedo_fill"] = (out.surf["albedo"][dark] - ref).abs().mean()
+    L["loss_albedo_flat"] = zero
+    if cfg.w_albedo_flat > 0 and not specular:
+        lit = surf_rays > 0.5
+        if rays.unlit is not None:
+            lit = lit & ~rays.unlit
+        if lit.sum() >= 2:
+            lum = out.surf["albedo"][lit].mean(-1)
+            L["loss_albedo_flat"] = (lum / lum.detach().mean().clamp_min(1e-4) - 1.0).abs().mean()
     if cfg.w_metallic > 0:
         keep = surf_rays > 0.5
         L["loss_metallic"] = (out.surf["metallic"].reshape(-1) * keep).sum() / keep.sum().clamp_min(1.0)
@@ -163,5 +181,5 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool) -> d
                  + cfg.w_eikonal * L["loss_eik"] + cfg.w_hessian * L["loss_hess"]
                  + cfg.w_light * L["loss_light"] + cfg.w_mask * L["loss_mask"]
                  + cfg.w_albedo_smooth * L["loss_albedo_smooth"] + cfg.w_metallic * L["loss_metallic"]
-                 + cfg.w_albedo_fill * L["loss_albedo_fill"])
+                 + cfg.w_albedo_fill * L["loss_albedo_fill"] + cfg.w_albedo_flat * L["loss_albedo_flat"])
     return L

@@ -185,3 +185,53 @@ def test_albedo_fill_pulls_unlit_rays_toward_the_mean_lit_albedo():
     # no unlit flags (e.g. evaluation batches): the term is zero
     rays.unlit = None
     assert compute_losses(out, rays, lc, use_mask=True)["loss_albedo_fill"].item() == 0.0
+
+
+def test_albedo_flat_pulls_lit_luminance_toward_the_batch_mean_only_without_the_lobe():
+    """Hand-worked: lit surface rays 0, 1, 3 have albedo luminance 0.4, 0.6, 0.8 (mean 0.6), so
+    ``L_flat = (|0.4/0.6 - 1| + 0 + |0.8/0.6 - 1|) / 3 = 2/9``; the unlit ray 2 and the background
+    ray 4 take no part; with the lobe on the term is 0."""
+    R = 5
+    z3, z1 = torch.zeros(R, 3), torch.zeros(R)
+    albedo = torch.tensor([[0.2, 0.4, 0.6], [0.5, 0.6, 0.7], [0.0, 0.0, 0.0], [0.8, 0.8, 0.8], [0.1, 0.1, 0.1]],
+                          requires_grad=True)
+    out = RenderOutput(rgb_r=z3, rgb_vol=z3, rgb_surf=z3, weight_sum=torch.ones(R), w_max=z1, depth=z1,
+                       eikonal=torch.zeros(0), hessian=torch.zeros(0),
+                       surf={"albedo": albedo, "x": z3, "normal": z3, "light_dir": z3, "intensity": z1})
+    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=z3, mask=torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0]),
+                    unlit=torch.tensor([False, False, True, False, False]))
+    lc = LossConfig(w_r=0.0, lambda1_surf=0.0, lambda2_vol=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0,
+                    w_mask=0.0, w_albedo_flat=2.0)
+    assert compute_losses(out, rays, lc, use_mask=True)["loss"].item() == 0.0   # lobe on
+    L = compute_losses(out, rays, lc, use_mask=True, specular=False)
+    assert abs(L["loss_albedo_flat"].item() - 2.0 / 9.0) < 1e-6
+    assert abs(L["loss"].item() - 4.0 / 9.0) < 1e-6
+    L["loss"].backward()
+    g = albedo.grad
+    assert torch.all(g[0] < 0) and torch.all(g[3] > 0)         # the dark one brightens, the bright one darkens
+    assert torch.all(g[1] == 0) and torch.all(g[2] == 0) and torch.all(g[4] == 0)
+    # equal luminance, any colours: nothing to flatten (chroma is left to the images)
+    out.surf["albedo"] = torch.tensor([[0.9, 0.6, 0.3]] * 2 + [[0.6, 0.6, 0.6]] * 3)
+    assert compute_losses(out, rays, lc, use_mask=True, specular=False)["loss_albedo_flat"].item() < 1e-7
+
+
+def test_diffuse_only_shading_sees_only_albedo_times_intensity():
+    """Why the albedo flatness prior exists: without the lobe, (c s, I / s) renders the same
+    colour for any s > 0, so the images cannot say which of the two carries a pattern; with
+    the lobe (F0 = 0.04 at metallic 0) they can."""
+    from nepf_core import bsdf
+    g = torch.Generator().manual_seed(0)
+    N = 64
+    n = torch.nn.functional.normalize(torch.randn(N, 3, generator=g), dim=-1)
+    l = torch.nn.functional.normalize(n + 0.6 * torch.randn(N, 3, generator=g), dim=-1)
+    v = torch.nn.functional.normalize(n + 0.6 * torch.randn(N, 3, generator=g), dim=-1)
+    c = 0.1 + 0.4 * torch.rand(N, 3, generator=g)
+    rough, metal = torch.full((N, 1), 0.3), torch.zeros(N, 1)
+    inten = 1.0 + torch.rand(N, 1, generator=g)
+    s = 0.5 + torch.rand(N, 1, generator=g)
+    lit = ((n * l).sum(-1) > 0.05) & ((n * v).sum(-1) > 0.05)
+    assert lit.sum() > 10
+    for spec, same in ((False, True), (True, False)):
+        a = bsdf.shade(n, l, v, c, rough, metal, inten, specular=spec)[lit]
+        b = bsdf.shade(n, l, v, c * s, rough, metal, inten / s, specular=spec)[lit]
+        assert torch.allclose(a, b, rtol=1e-5, atol=1e-7) == same

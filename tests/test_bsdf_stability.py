@@ -175,6 +175,20 @@ def test_stability_sweep_full_bsdf(chunk):
         _assert_finite_with_grads(f"shade{kw}", L, x)
         assert (L >= 0).all() and (L[back] == 0).all()
 
+        # shading while a dropped lobe fades out: the same guarantees at every fade weight,
+        # and at w = 1 exactly the full BSDF's image
+        if "specular" not in kw:
+            lam = kw.get("lambertian", False)
+            for w in (0.0, 0.5, 1.0):
+                x = _leaves(cfg)
+                x["intensity"] = torch.full((CHUNK, 1), 100.0, requires_grad=True)
+                Lf = bsdf.shade_fading_lobe(x["n"], x["l"], x["v"], x["albedo"], x["roughness"], x["metallic"],
+                                            x["intensity"], w, lambertian=lam)
+                _assert_finite_with_grads(f"shade_fading_lobe(w={w}){kw}", Lf, x)
+                assert (Lf >= 0).all() and (Lf[back] == 0).all()
+                if w == 1.0:
+                    torch.testing.assert_close(Lf.detach(), L.detach(), rtol=1e-5, atol=1e-6)
+
 
 @pytest.mark.parametrize("chunk", range(N_CONFIGS // CHUNK))
 def test_stability_sweep_terms(chunk):

@@ -139,15 +139,21 @@ def test_without_the_lobe_metallic_no_longer_changes_the_shading():
     assert not torch.allclose(c.rgb_surf, e.rgb_surf)
     albedo, metal = diffuse_only_material(s["albedo"], torch.full((64,), 0.7))
     assert torch.equal(albedo, s["albedo"]) and torch.all(metal == 0) and metal.shape == (64,)
-    # mid-fade: (1 - w m) f_d(c), which is the diffuse of ((1 - w m) c, metallic 0)
+    # mid-fade: (1 - w m) f_d(c) + w f_s. Its diffuse part is the diffuse of ((1 - w m) c,
+    # metallic 0); linear in w, so at w = 0.5 it is the mean of the lobe-on image (w = 1,
+    # (1 - m) f_d + f_s) and the dielectric diffuse (w = 0, f_d)
     cfg.render.diffuse_metal_weight = 0.5
     h = surf_rgb(0.9, False)
     c2, m2 = diffuse_only_material(h.surf["albedo"], torch.full((64,), 0.9), 0.5)
     ref2 = bsdf_eval(h.surf["normal"], h.surf["light_dir"], -d, c2, h.surf["roughness"][:, None],
                      m2[:, None], specular=False) * h.surf["intensity"][:, None] * \
         (h.surf["normal"] * h.surf["light_dir"]).sum(-1, keepdim=True).clamp_min(0)
-    assert torch.allclose(h.rgb_surf, ref2, atol=1e-6)
-    assert torch.allclose(h.rgb_surf, a.rgb_surf * (1 - 0.45), atol=1e-6)
+    lobe = e.rgb_surf - (1 - 0.9) * a.rgb_surf
+    assert float(lobe.abs().max()) > 1e-3
+    assert torch.allclose(h.rgb_surf, ref2 + 0.5 * lobe, atol=1e-6)
+    assert torch.allclose(h.rgb_surf, 0.5 * (a.rgb_surf + e.rgb_surf), atol=1e-6)
+    cfg.render.diffuse_metal_weight = 1.0      # the drop itself: the lobe-on image exactly
+    assert torch.allclose(surf_rgb(0.9, False).rgb_surf, e.rgb_surf, atol=1e-6)
 
 
 @pytest.mark.parametrize("lambertian", [False, True])

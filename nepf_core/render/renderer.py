@@ -62,9 +62,10 @@ class RenderConfig:
     specular: bool = True
     """Evaluate the GGX specular lobe (adaptivity can switch it off)."""
     diffuse_metal_weight: float = 0.0
-    """Lobe off only: the diffuse is shaded as ``(1 - w m) f_d(c)`` with this ``w``. 0 (the
-    default): a dielectric diffuse, metallic ignored. Adaptivity fades it from 1 to 0 after
-    dropping the lobe, so the shading does not jump (``(1 - m) f_d`` to ``f_d``)."""
+    """Lobe off only: the surface is shaded as ``(1 - w m) f_d(c) + w f_s`` with this ``w``
+    (:func:`nepf_core.bsdf.shade_fading_lobe`). 0 (the default): a dielectric diffuse, metallic
+    ignored, no lobe evaluated. Adaptivity fades it from 1 to 0 after dropping the lobe, so the
+    shading does not jump (from the full BSDF to ``f_d``)."""
     unlit_albedo_stopgrad: bool = False
     """Training only: on rays whose target colour is unlit (``RayBatch.unlit``, set by fit()
     from the data), the colour error of L_vol / L_surf does not reach the albedo; only the
@@ -233,10 +234,12 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         if cfg.unlit_material_stopgrad:
             rough_shade = torch.where(unlit_sample, rough.detach(), rough)
             metal_shade = torch.where(unlit_sample, metal.detach(), metal)
-    if not cfg.specular:  # lobe dropped: (1 - w m) f_d(c), w fading to 0 (a dielectric diffuse)
-        metal_shade = metal_shade * cfg.diffuse_metal_weight
-    pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal_shade[:, None], intensity[:, None],
-                     lambertian=cfg.lambertian, specular=cfg.specular)
+    if not cfg.specular:  # lobe dropped: (1 - w m) f_d(c) + w f_s, w fading to 0 (a dielectric diffuse)
+        pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal_shade[:, None],
+                                     intensity[:, None], cfg.diffuse_metal_weight, lambertian=cfg.lambertian)
+    else:
+        pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal_shade[:, None],
+                         intensity[:, None], lambertian=cfg.lambertian, specular=True)
 
     P = pts.shape[0]
     rad_full = pts.new_zeros(P, 3).index_copy(0, sel_idx, rad)
