@@ -184,6 +184,32 @@ def test_plateau_counter_resets_on_improvement():
     assert not a.plateaued and a._evals_since_best == 2
 
 
+@pytest.mark.parametrize("drop", [False, True])
+def test_plateau_clock_restarts_when_the_lobe_drops_and_when_its_fade_ends(drop):
+    """The PBR PSNR dips after a lobe drop; the dip must not read as a plateau. Same held-out
+    sequence (one evaluation a step, window 1): best 35 dB, then 25 -> 34 dB still climbing.
+    Without a drop the rule fires (3 evaluations under the bar, half the time); with the drop
+    before the dip the bar restarts there, and again at the end of the fade."""
+    a, cfg = _adapt(iters_fixed=False)
+    seq = [(10, 30.0), (20, 35.0)] + [(30 + 10 * k, 25.0 + 2.0 * k) for k in range(5)]   # 25, 27 ... 33
+    for wall, v in seq[:2]:
+        a.on_test_eval(wall, {"test_psnr": v, "wall_s": float(wall)})
+    if drop:
+        for step in (100, 200, 300):
+            a.on_step(step, _out(share=0.0), _losses())
+        assert not cfg.render.specular
+    for wall, v in seq[2:]:
+        a.on_test_eval(wall, {"test_psnr": v, "wall_s": float(wall)})
+    assert a.plateaued != drop
+    if drop:
+        assert a._best_psnr == 33.0
+        a.on_step(300 + a.lobe_fade_steps, _out(share=0.0), _losses())     # fade over
+        assert cfg.render.diffuse_metal_weight == 0.0 and a._best_psnr == -math.inf
+        for wall in range(80, 170, 10):       # flat from 80 s; t - t_best >= t / 2 from 160 s on
+            a.on_test_eval(wall, {"test_psnr": 33.0 + 0.1 * (wall % 20 == 0), "wall_s": float(wall)})
+            assert a.plateaued == (wall >= 160)   # a real plateau after the fade still stops the run
+
+
 # ---------------------------------------------------------------- data-driven, before training
 @pytest.mark.parametrize("has_masks", [True, False])
 def test_mask_and_background_decisions(has_masks):
