@@ -12,7 +12,11 @@ Rules (each decision is logged with its step and reason):
   max minus median view over the mean, a ratio of sums). The lobe can only add
   view-dependent light, so when that spread stays under ``view_spread_thr`` (2.5 %) for
   ``patience`` checks in a row the lobe is dropped: the surface is then shaded, and exported,
-  as a dielectric diffuse, metallic 0 (:func:`nepf_core.bsdf.diffuse_only_material`). While it is off it comes back if
+  as a dielectric diffuse, metallic 0 (:func:`nepf_core.bsdf.diffuse_only_material`), after a
+  fade of ``lobe_fade_steps`` over which lobe and metallic dimmer go linearly (the image is the
+  same at the drop), and the albedo flatness prior (``LossConfig.w_albedo_flat``) applies: without
+  the lobe only the product of albedo and light intensity is seen (docs/FAST.md, "What fixed it").
+  While it is off it comes back if
   the spread exceeds ``2 view_spread_thr``, or if the L_vol residual on the brightest 5 % of
   pixels exceeds ``highlight_ratio`` times the median residual while the spread is not flat.
   The spread counts only lit pixels' points, and only while the radiance explains them
@@ -373,6 +377,11 @@ class Adaptivity:
         if not on:
             r.diffuse_metal_weight = 1.0   # same image at the drop, then fades
             self._fade_start = step
+        if self.cfg.loss.w_albedo_flat > 0:
+            self.record("albedo_flatness_prior", not on,
+                        "specular lobe back on: the images tie the light again" if on else
+                        f"specular lobe off: diffuse-only shading sees only albedo x light intensity, so slow "
+                        f"luminance variation goes to the light (weight {self.cfg.loss.w_albedo_flat:g})", step)
         self._restart_plateau_clock()
 
     def _restart_plateau_clock(self) -> None:

@@ -136,10 +136,12 @@ def tiny() -> NePFConfig:
 def fast() -> NePFConfig:
     """Grid SDF + small heads + finite-difference normals + an occupancy grid (rays that meet no
     occupied cell leave the training batch; NeuS coarse + importance samples on the others: the
-    occupancy-guided sampler, ``render.sampler="occupancy"``, measured worse, docs/FAST.md), and two
-    albedo priors the paper does not have: unlit pixels do not train the albedo, and a small
+    occupancy-guided sampler, ``render.sampler="occupancy"``, measured worse, docs/FAST.md), and three
+    albedo priors the paper does not have: unlit pixels do not train the albedo, a small
     albedo smoothness term (docs/FAST.md, "Albedo in unlit regions"; the opt-in material
-    switches measured in "Why the spot_textured albedo is constant" are off here)."""
+    switches measured in "Why the spot_textured albedo is constant" are off here), and, only
+    once adaptivity has dropped the specular lobe, an albedo flatness term (docs/FAST.md, "What
+    fixed it")."""
     head = HeadConfig(width=64, depth=2, activation="relu", n_freqs_v=4)
     return NePFConfig(
         name="fast",
