@@ -210,10 +210,12 @@ def diffuse_only_material(albedo: Tensor, metallic: Tensor, weight: float = 0.0)
 
     With the lobe off the renderer shades ``f = (1 - w m) f_d(c)``
     (``RenderConfig.diffuse_metal_weight = w``), and both diffuse models are linear in the
-    albedo, so ``(1 - w m) f_d(c) = f_d((1 - w m) c)``: the returned pair renders the same image
-    with metallic 0, which is what an exported asset must carry (a renderer such as Blender
-    would otherwise add a metallic lobe the fit never had). ``w`` fades from 1 to 0 after the
-    drop; at 0 the surface is a dielectric diffuse and ``m`` is ignored. Keeping ``w = 1``
+    albedo, so ``(1 - w m) f_d(c) = f_d((1 - w m) c)``: the returned pair renders the same
+    diffuse with metallic 0, which is what an exported asset must carry (a renderer such as
+    Blender would otherwise add a metallic lobe the fit never had). ``w`` fades from 1 to 0
+    after the drop (:func:`shade_fading_lobe`; the fading lobe ``w f_s`` itself is not carried,
+    so an asset exported mid-fade lacks it); at 0 the surface is a dielectric diffuse and ``m``
+    is ignored. Keeping ``w = 1``
     leaves ``m`` as a free per-point dimmer that trades against the albedo and the photon
     intensity: measured on sphere_diffuse, held-out PBR 46.0 dB but aligned albedo PSNR 6.7 dB
     (red albedo saturated at 1, metallic spread over [0, 1]). Shapes: ``albedo [..., 3]``,
