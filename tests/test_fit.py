@@ -77,8 +77,8 @@ def test_nonfinite_loss_skips_then_fails(small_scene, tmp_path, monkeypatch):
     real = fitmod.compute_losses
     calls = {"n": 0}
 
-    def poisoned(out, rays, cfg, use_mask):
-        L = real(out, rays, cfg, use_mask=use_mask)
+    def poisoned(out, rays, cfg, use_mask, **kw):
+        L = real(out, rays, cfg, use_mask=use_mask, **kw)
         calls["n"] += 1
         if calls["n"] in (2, 3):
             L["loss"] = L["loss"] * float("nan")
@@ -96,7 +96,8 @@ def test_nonfinite_loss_skips_then_fails(small_scene, tmp_path, monkeypatch):
 
     calls["n"] = -100  # poison every step now
     monkeypatch.setattr(fitmod, "compute_losses",
-                        lambda out, rays, cfg, use_mask: {**real(out, rays, cfg, use_mask=use_mask), "loss": torch.tensor(float("inf"))})
+                        lambda out, rays, cfg, use_mask, **kw: {**real(out, rays, cfg, use_mask=use_mask, **kw),
+                                                                "loss": torch.tensor(float("inf"))})
     cfg = _cfg(20)
     cfg.train.max_nonfinite_steps = 4
     with pytest.raises(FitError, match="non-finite"):
