@@ -151,7 +151,7 @@ def fast() -> NePFConfig:
         render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1, sampler="neus",
                             normals="fd", alpha_mode="sample", head_weight_threshold=1e-4,
                             eikonal_fraction=0.1, unlit_albedo_stopgrad=True, albedo_smooth_sigma=0.02),
-        loss=LossConfig(w_hessian=0.0, w_albedo_smooth=2e-4, w_albedo_flat=3e-5),
+        loss=LossConfig(w_hessian=0.0, w_albedo_smooth=2e-4, w_albedo_flat=3e-6),
         train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,
                           anneal_end=2000, log_every=20, sync_every=500, checkpoint_every=1000,
                           eval_every_s=60.0, eval_stride=1, target_samples=0, ema_decay=0.995),
