@@ -70,8 +70,11 @@ class LossConfig:
     shading ``c I(x) (n.l) / pi`` sees only the product of the albedo and the scalar photon
     intensity, so any pattern ``s(x)`` the photon network can represent moves freely between
     them; this term gives it to the light (slow variation is illumination: the Retinex
-    assumption). Keep it well under ``lambda2_vol``: both are L1, so texture the intensity
-    cannot represent stays in the albedo while the colour terms outweigh it."""
+    assumption). Both this and the colour terms are L1, so texture stays in the albedo only where
+    the colour terms' gradient on the albedo is larger, and that gradient carries the shading
+    ``I (n.l) / pi`` and the sRGB slope: a weight merely under ``lambda2_vol`` is not enough. At
+    3e-5 a textured Lambertian torus lost its held-out PBR after the lobe drop (29.85 -> 17.35
+    dB); ``fast`` uses 3e-6 (docs/FAST.md, "What fixed it")."""
     w_metallic: float = 0.0
     """Dielectric prior: mean metallic at the max-weight points of surface rays; not in the paper.
     Metallic also darkens the diffuse lobe (``(1 - m) f_d``), so without a prior a dark texture
