@@ -353,9 +353,9 @@ class Adaptivity:
                            f"cameras (< {self.view_spread_thr:.1%})" if flat else
                            f"mean metallic {metal:.3f} < {self.metal_thr}, specular share {share:.3%} < {self.spec_thr:.0%}")
                     self._set_lobe(False, step, f"scene looks diffuse: {why} for {self.patience} checks "
-                                   f"(at the drop: metallic {metal:.3f}, lobe share {share:.1%}); the GGX lobe is no longer "
-                                   f"evaluated; the diffuse (1 - m) f_d(c) fades to a dielectric f_d(c) over {self.lobe_fade_steps} steps "
-                                   "(the asset carries the shaded material, metallic 0)")
+                                   f"(at the drop: metallic {metal:.3f}, lobe share {share:.1%}); the GGX lobe and the metallic "
+                                   f"dimmer fade out over {self.lobe_fade_steps} steps, then the lobe is no longer evaluated and "
+                                   "the surface is a dielectric diffuse f_d(c) (the asset carries the shaded material, metallic 0)")
             else:
                 self._diffuse_streak = 0
         elif spread is not None and spread > 2 * self.view_spread_thr:
@@ -396,9 +396,10 @@ class Adaptivity:
 
     def _fade_metal(self, step: int) -> None:
         """After a drop, ``render.diffuse_metal_weight = max(0, 1 - (step - t_drop) / lobe_fade_steps)``:
-        the diffuse goes from ``(1 - m) f_d(c)`` (the image just before the drop, minus the
-        lobe) to ``f_d(c)`` linearly. An immediate switch doubled the sphere's shading at
-        metallic ~0.5: its held-out PBR fell to 19 dB and its albedo PSNR from 45 to 32 dB."""
+        the shading goes from ``(1 - m) f_d(c) + f_s`` (the image just before the drop) to
+        ``f_d(c)`` linearly (:func:`nepf_core.bsdf.shade_fading_lobe`). An immediate switch to
+        ``f_d(c)`` doubled the sphere's shading at metallic ~0.5: its held-out PBR fell to 19 dB
+        and its albedo PSNR from 45 to 32 dB."""
         r = self.cfg.render
         if r.specular or self._fade_start is None or r.diffuse_metal_weight <= 0.0:
             return
