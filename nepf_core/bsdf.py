@@ -194,15 +194,15 @@ def shade_fading_lobe(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness
     ``L = ((1 - w m) f_d(c) + w f_s(c, r, m)) * I * max(n.l, 0)``.
 
     ``w = 1`` is the full BSDF (the image just before the drop), ``w = 0`` a dielectric diffuse
-    (metallic ignored). Linear in ``w``, so the image changes by a bounded amount per step
-    while ``w`` goes from 1 to 0. Shapes: as :func:`shade`.
+    (metallic ignored). ``f_d`` does not depend on ``m``, so this is the blend
+    ``(1 - w) f(m = 0, no lobe) + w f(m)`` of the two end points: linear in ``w``, the image
+    changes by a bounded amount per step while ``w`` goes from 1 to 0. Shapes: as :func:`shade`.
     """
-    f_diffuse = bsdf_eval(n, l, v, albedo, roughness, weight * metallic, lambertian=lambertian, specular=False)
-    if weight <= 0.0:
-        return f_diffuse * intensity * dot(n, l).clamp_min(0.0)
-    f_lobe = (bsdf_eval(n, l, v, albedo, roughness, metallic, lambertian=lambertian, specular=True)
-              - bsdf_eval(n, l, v, albedo, roughness, metallic, lambertian=lambertian, specular=False))
-    return (f_diffuse + weight * f_lobe) * intensity * dot(n, l).clamp_min(0.0)
+    f = bsdf_eval(n, l, v, albedo, roughness, torch.zeros_like(metallic), lambertian=lambertian, specular=False)
+    if weight > 0.0:
+        f_full = bsdf_eval(n, l, v, albedo, roughness, metallic, lambertian=lambertian, specular=True)
+        f = (1.0 - weight) * f + weight * f_full
+    return f * intensity * dot(n, l).clamp_min(0.0)
 
 
 def diffuse_only_material(albedo: Tensor, metallic: Tensor, weight: float = 0.0) -> tuple[Tensor, Tensor]:

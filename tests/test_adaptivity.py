@@ -103,18 +103,21 @@ def test_specular_reenabled_when_share_would_be_large():
     assert not cfg.render.specular
     a.on_step(500, _out(share=0.2), _losses())
     assert cfg.render.specular
-    # the albedo flatness prior is on exactly while the lobe is off (when the preset has one)
-    flat = _names(a, "albedo_flatness_prior")
-    assert cfg.loss.w_albedo_flat == 0 and not flat
+    d = _names(a, "specular_lobe")[-1]
+    assert d["value"] is True and d["step"] == 500 and "share" in d["reason"]
+    assert a._diffuse_streak == 0
+
+
+def test_albedo_flatness_prior_is_recorded_on_exactly_while_the_lobe_is_off():
+    a, cfg = _dropped()
+    a.on_step(400, _out(share=0.2), _losses())
+    assert cfg.loss.w_albedo_flat == 0 and not _names(a, "albedo_flatness_prior")   # tiny has none
     b, cfg_b = _adapt()
     cfg_b.loss.w_albedo_flat = 3e-5
     for step in (100, 200, 300):
         b.on_step(step, _out(share=0.0), _losses())
     b.on_step(400, _out(share=0.2), _losses())
     assert [(d["value"], d["step"]) for d in _names(b, "albedo_flatness_prior")] == [(True, 300), (False, 400)]
-    d = _names(a, "specular_lobe")[-1]
-    assert d["value"] is True and d["step"] == 500 and "share" in d["reason"]
-    assert a._diffuse_streak == 0
 
 
 def test_specular_reenabled_by_highlight_residual():

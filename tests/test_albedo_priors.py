@@ -105,19 +105,28 @@ def test_lit_rays_train_the_albedo():
     assert albedo_g > 0.0 and rm_g > 0.0 and photon_g > 0.0
 
 
+def _surface_output(R: int, **surf) -> RenderOutput:
+    """A RenderOutput of ``R`` opaque rays whose max-weight-point values are zero except ``surf``."""
+    z3, z1 = torch.zeros(R, 3), torch.zeros(R)
+    base = {"albedo": z3, "x": z3, "normal": z3, "light_dir": z3, "intensity": z1}
+    return RenderOutput(rgb_r=z3, rgb_vol=z3, rgb_surf=z3, weight_sum=torch.ones(R), w_max=z1, depth=z1,
+                        eikonal=torch.zeros(0), hessian=torch.zeros(0), surf={**base, **surf})
+
+
+def _prior_only(**weights) -> LossConfig:
+    """Every colour and regulariser term off except the given prior weights."""
+    return LossConfig(w_r=0.0, lambda1_surf=0.0, lambda2_vol=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0,
+                      w_mask=0.0, **weights)
+
+
 def test_albedo_smoothness_loss_hand_value_and_renderer_output():
     R = 4
-    z3, z1 = torch.zeros(R, 3), torch.zeros(R)
     albedo = torch.tensor([[0.2, 0.4, 0.6], [0.5, 0.5, 0.5], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
     jitter = torch.tensor([[0.3, 0.4, 0.3], [0.5, 0.5, 0.5], [0.9, 0.9, 0.9], [0.0, 0.0, 0.0]])
-    out = RenderOutput(rgb_r=z3, rgb_vol=z3, rgb_surf=z3, weight_sum=torch.ones(R), w_max=z1, depth=z1,
-                       eikonal=torch.zeros(0), hessian=torch.zeros(0),
-                       surf={"albedo": albedo, "albedo_jitter": jitter, "x": z3, "normal": z3,
-                             "light_dir": z3, "intensity": z1})
+    out = _surface_output(R, albedo=albedo, albedo_jitter=jitter)
     mask = torch.tensor([1.0, 1.0, 1.0, 0.0])    # the last ray is background: not counted
-    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=z3, mask=mask)
-    lc = LossConfig(w_r=0.0, lambda1_surf=0.0, lambda2_vol=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0,
-                    w_mask=0.0, w_albedo_smooth=2.0)
+    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=torch.zeros(R, 3), mask=mask)
+    lc = _prior_only(w_albedo_smooth=2.0)
     L = compute_losses(out, rays, lc, use_mask=True)
     # per-ray mean |diff|: (0.1 + 0 + 0.3) / 3, 0, 0.9 -> mean over the 3 foreground rays
     expected = ((0.4 / 3) + 0.0 + 0.9) / 3
@@ -140,16 +149,11 @@ def test_albedo_smoothness_loss_hand_value_and_renderer_output():
 def test_metallic_prior_hand_value_and_gradient_sign():
     """L_met = mean metallic over surface rays; its gradient pushes metallic down."""
     R = 4
-    z3, z1 = torch.zeros(R, 3), torch.zeros(R)
     metallic = torch.tensor([0.2, 0.8, 0.5, 1.0], requires_grad=True)
-    out = RenderOutput(rgb_r=z3, rgb_vol=z3, rgb_surf=z3, weight_sum=torch.ones(R), w_max=z1, depth=z1,
-                       eikonal=torch.zeros(0), hessian=torch.zeros(0),
-                       surf={"albedo": z3, "metallic": metallic, "x": z3, "normal": z3,
-                             "light_dir": z3, "intensity": z1})
+    out = _surface_output(R, metallic=metallic)
     mask = torch.tensor([1.0, 1.0, 1.0, 0.0])    # background ray: not counted
-    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=z3, mask=mask)
-    lc = LossConfig(w_r=0.0, lambda1_surf=0.0, lambda2_vol=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0,
-                    w_mask=0.0, w_metallic=0.5)
+    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=torch.zeros(R, 3), mask=mask)
+    lc = _prior_only(w_metallic=0.5)
     L = compute_losses(out, rays, lc, use_mask=True)
     expected = (0.2 + 0.8 + 0.5) / 3
     assert abs(L["loss_metallic"].item() - expected) < 1e-6
@@ -162,17 +166,13 @@ def test_metallic_prior_hand_value_and_gradient_sign():
 
 def test_albedo_fill_pulls_unlit_rays_toward_the_mean_lit_albedo():
     R = 5
-    z3, z1 = torch.zeros(R, 3), torch.zeros(R)
     albedo = torch.tensor([[0.2, 0.4, 0.6], [0.4, 0.6, 0.8], [0.0, 0.0, 0.0], [0.9, 0.9, 0.9], [0.5, 0.5, 0.5]],
                           requires_grad=True)
-    out = RenderOutput(rgb_r=z3, rgb_vol=z3, rgb_surf=z3, weight_sum=torch.ones(R), w_max=z1, depth=z1,
-                       eikonal=torch.zeros(0), hessian=torch.zeros(0),
-                       surf={"albedo": albedo, "x": z3, "normal": z3, "light_dir": z3, "intensity": z1})
+    out = _surface_output(R, albedo=albedo)
     mask = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0])            # the last ray is background
     unlit = torch.tensor([False, False, True, True, True])
-    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=z3, mask=mask, unlit=unlit)
-    lc = LossConfig(w_r=0.0, lambda1_surf=0.0, lambda2_vol=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0,
-                    w_mask=0.0, w_albedo_fill=3.0)
+    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=torch.zeros(R, 3), mask=mask, unlit=unlit)
+    lc = _prior_only(w_albedo_fill=3.0)
     L = compute_losses(out, rays, lc, use_mask=True)
     ref = torch.tensor([0.3, 0.5, 0.7])                        # mean of the two lit rays
     expected = ((torch.tensor([0.0, 0.0, 0.0]) - ref).abs().sum() + (torch.tensor([0.9] * 3) - ref).abs().sum()) / 6
@@ -192,16 +192,12 @@ def test_albedo_flat_pulls_lit_luminance_toward_the_batch_mean_only_without_the_
     ``L_flat = (|0.4/0.6 - 1| + 0 + |0.8/0.6 - 1|) / 3 = 2/9``; the unlit ray 2 and the background
     ray 4 take no part; with the lobe on the term is 0."""
     R = 5
-    z3, z1 = torch.zeros(R, 3), torch.zeros(R)
     albedo = torch.tensor([[0.2, 0.4, 0.6], [0.5, 0.6, 0.7], [0.0, 0.0, 0.0], [0.8, 0.8, 0.8], [0.1, 0.1, 0.1]],
                           requires_grad=True)
-    out = RenderOutput(rgb_r=z3, rgb_vol=z3, rgb_surf=z3, weight_sum=torch.ones(R), w_max=z1, depth=z1,
-                       eikonal=torch.zeros(0), hessian=torch.zeros(0),
-                       surf={"albedo": albedo, "x": z3, "normal": z3, "light_dir": z3, "intensity": z1})
-    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=z3, mask=torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0]),
-                    unlit=torch.tensor([False, False, True, False, False]))
-    lc = LossConfig(w_r=0.0, lambda1_surf=0.0, lambda2_vol=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0,
-                    w_mask=0.0, w_albedo_flat=2.0)
+    out = _surface_output(R, albedo=albedo)
+    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=torch.zeros(R, 3),
+                    mask=torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0]), unlit=torch.tensor([False, False, True, False, False]))
+    lc = _prior_only(w_albedo_flat=2.0)
     assert compute_losses(out, rays, lc, use_mask=True)["loss"].item() == 0.0   # lobe on
     L = compute_losses(out, rays, lc, use_mask=True, specular=False)
     assert abs(L["loss_albedo_flat"].item() - 2.0 / 9.0) < 1e-6
