@@ -69,3 +69,18 @@ def test_weights_peak_at_surface_for_sharp_s():
     t_peak = float((t + 0.005)[0, w.argmax()])
     assert abs(t_peak - 1.0) < 0.02
     assert float(w.sum()) > 0.99
+
+
+def test_surface_crossing_hand_values():
+    from nepf_core.render.neus import surface_crossing_t
+    z = torch.tensor([[0.0, 1.0, 2.0, 3.0]] * 4)
+    f = torch.tensor([[0.5, -0.5, -1.0, -2.0],     # crossing in the max-weight section: 0.5
+                      [0.9, 0.3, -0.1, -0.5],      # max weight one section early: the crossing of [1, 2], 1.75
+                      [1.0, 0.8, 0.6, 0.4],        # no crossing: the max-weight sample itself
+                      [0.2, -0.2, 0.2, -0.6]])     # two entering sections: the nearest to idx = 2
+    idx = torch.tensor([0, 0, 1, 2])
+    t = surface_crossing_t(z, f, idx)
+    assert torch.allclose(t, torch.tensor([0.5, 1.75, 1.0, 2.25]))
+    # an exiting section (f rising through 0) is not a surface entry
+    t2 = surface_crossing_t(torch.tensor([[0.0, 1.0]]), torch.tensor([[-0.5, 0.5]]), torch.tensor([0]))
+    assert float(t2) == 0.0

@@ -52,3 +52,30 @@ def max_weight_index(weights: Tensor) -> tuple[Tensor, Tensor]:
     """
     w_max, idx = weights.max(dim=-1)
     return idx, w_max
+
+
+def surface_crossing_t(z: Tensor, f: Tensor, idx: Tensor) -> Tensor:
+    """Ray depth of the SDF zero crossing nearest the max-weight sample: ``[R]``.
+
+    ``z, f [R, S]`` sample depths and SDF values, ``idx [R]`` the max-weight sample (in
+    ``sample`` alpha mode the weight of sample ``i`` is the opacity of section ``[z_i, z_{i+1}]``).
+    Among the sections that enter the surface (``f_j > 0 >= f_{j+1}``) take the one nearest
+    ``idx`` in sample order (``idx`` itself when it enters: the usual case; a neighbour when
+    a wide section just in front of a narrow importance-sampled one carries more weight), and
+    return the crossing of the linear interpolant there,
+    ``z* = z_j + (z_{j+1} - z_j) f_j / (f_j - f_{j+1})``. A ray with no entering section (it
+    misses, or grazes) keeps ``z_idx``. No gradient: like the samples themselves, the depth is
+    a placement; the fields queried there carry the gradients.
+    """
+    with torch.no_grad():
+        R, S = z.shape
+        if S < 2:
+            return z.gather(1, idx[:, None])[:, 0]
+        enters = (f[:, :-1] > 0) & (f[:, 1:] <= 0)                      # [R, S-1]
+        j = torch.arange(S - 1, device=z.device)[None]
+        dist = torch.where(enters, (j - idx[:, None]).abs(), torch.full_like(j, 2 * S))
+        jj = dist.argmin(-1)
+        zi, zn = z.gather(1, jj[:, None])[:, 0], z.gather(1, jj[:, None] + 1)[:, 0]
+        fi, fn = f.gather(1, jj[:, None])[:, 0], f.gather(1, jj[:, None] + 1)[:, 0]
+        frac = (fi / (fi - fn).clamp_min(1e-12)).clamp(0.0, 1.0)
+        return torch.where(enters.any(-1), zi + frac * (zn - zi), z.gather(1, idx[:, None])[:, 0])

@@ -4,6 +4,9 @@
     L_vol  = sum_i w_i f_bsdf(l_i, v, n_i; c_i, r_i, m_i) I_i (n_i . l_i)^+   (same background)
     L_surf = f_bsdf(...) I (n . l)^+  at i* = argmax_i w_i              (surface PBR)
 
+(``surface_refine``: L_surf at the SDF zero crossing inside the max-weight section instead of
+at the sample ``x_{i*}`` itself.)
+
 with ``v = -d`` and ``n_i = grad f / |grad f|``. Heads (radiance, photon, material) are
 evaluated only where ``w_i > head_weight_threshold`` (0 evaluates every sample); skipped
 samples contribute at most ``threshold`` each to any colour, which is below 8-bit precision
@@ -20,7 +23,8 @@ from torch import Tensor
 from nepf_core import bsdf
 from nepf_core.fields.gradients import hessian_diag_from_pairs, sdf_gradient_autograd, sdf_gradient_central
 from nepf_core.rays import RayBatch
-from nepf_core.render.neus import alpha_from_sdf, annealed_cos, max_weight_index, weights_from_alpha
+from nepf_core.render.neus import (alpha_from_sdf, annealed_cos, max_weight_index, surface_crossing_t,
+                                   weights_from_alpha)
 from nepf_core.render.sampling import hierarchical_z, near_far_from_sphere, stratified_z
 
 
@@ -87,6 +91,13 @@ class RenderConfig:
     unlit_rel_threshold: float = 0.01
     """A target pixel is unlit when ``max_c L_gt < unlit_rel_threshold * q99(foreground)``
     (:func:`nepf_core.rays.unlit_threshold`)."""
+    surface_refine: bool = False
+    """``sample`` alpha mode only: shade L_surf (and report ``surf``) at the SDF zero crossing
+    inside the max-weight section (:func:`nepf_core.render.neus.surface_crossing_t`), with its
+    own finite-difference normal, instead of at the max-weight sample, which lies up to one
+    sample spacing in front of the surface, at an offset that changes with the sample
+    placement. Costs one photon + material evaluation and 5 SDF queries per ray. Off in
+    ``paper`` (the paper shades the max-weight point)."""
     amp_heads: bool = False
     """bf16 autocast for the radiance / photon / material networks only (CUDA). The SDF, the
     NeuS density and the BSDF stay in fp32: a bf16 SDF near the surface is off by ~1e-3,
@@ -120,6 +131,35 @@ class RenderOutput:
     occupied_length: float | None = None
     """Occupancy sampler only: mean over the rays that meet an occupied cell of the length of
     ``[near, far]`` inside occupied cells, ``(1 - skip) (far - near)`` (normalised units)."""
+
+
+def _shade_points(model, cfg: RenderConfig, xs: Tensor, vs: Tensor, ns: Tensor, fs: Tensor,
+                  unlit: Tensor | None):
+    """Photon + material heads and the BSDF at ``N`` points: ``xs, vs, ns [N, 3]`` (position,
+    ray direction, unit normal), ``fs [N, F]`` SDF features, ``unlit [N]`` bool or None (training:
+    the colour error of an unlit point does not reach its albedo, ``RenderConfig.unlit_*``).
+    Returns ``pbr [N, 3] = f(l, -v; c, r, m) I (n . l)^+`` (the fading lobe when
+    ``cfg.specular`` is off), ``light_dir [N, 3]``, ``intensity [N]``, ``albedo [N, 3]``,
+    ``roughness [N]``, ``metallic [N]`` (all fp32)."""
+    with torch.autocast(device_type=xs.device.type, dtype=torch.bfloat16,
+                        enabled=cfg.amp_heads and xs.device.type == "cuda"):
+        light_dir, intensity = model.photon(xs, ns, fs)
+        albedo, rough, metal = model.material(xs, ns, fs)
+    light_dir, intensity = light_dir.float(), intensity.float()
+    albedo, rough, metal = albedo.float(), rough.float(), metal.float()
+    albedo_shade, rough_shade, metal_shade = albedo, rough, metal
+    if cfg.unlit_albedo_stopgrad and unlit is not None:
+        albedo_shade = torch.where(unlit[:, None], albedo.detach(), albedo)
+        if cfg.unlit_material_stopgrad:
+            rough_shade = torch.where(unlit, rough.detach(), rough)
+            metal_shade = torch.where(unlit, metal.detach(), metal)
+    if not cfg.specular:  # lobe dropped: (1 - w m) f_d(c) + w f_s, w fading to 0 (a dielectric diffuse)
+        pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal_shade[:, None],
+                                     intensity[:, None], cfg.diffuse_metal_weight, lambertian=cfg.lambertian)
+    else:
+        pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal_shade[:, None],
+                         intensity[:, None], lambertian=cfg.lambertian, specular=True)
+    return pbr, light_dir, intensity, albedo, rough, metal
 
 
 def _expand(t: Tensor, S: int) -> Tensor:
@@ -223,23 +263,9 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     with torch.autocast(device_type=xs.device.type, dtype=torch.bfloat16,
                         enabled=cfg.amp_heads and xs.device.type == "cuda"):
         rad = model.radiance(xs, vs, gs, fs)
-        light_dir, intensity = model.photon(xs, ns, fs)
-        albedo, rough, metal = model.material(xs, ns, fs)
-    rad, light_dir, intensity = rad.float(), light_dir.float(), intensity.float()
-    albedo, rough, metal = albedo.float(), rough.float(), metal.float()
-    albedo_shade, rough_shade, metal_shade = albedo, rough, metal
-    if train and cfg.unlit_albedo_stopgrad and rays.unlit is not None:
-        unlit_sample = rays.unlit[sel_idx // S]
-        albedo_shade = torch.where(unlit_sample[:, None], albedo.detach(), albedo)
-        if cfg.unlit_material_stopgrad:
-            rough_shade = torch.where(unlit_sample, rough.detach(), rough)
-            metal_shade = torch.where(unlit_sample, metal.detach(), metal)
-    if not cfg.specular:  # lobe dropped: (1 - w m) f_d(c) + w f_s, w fading to 0 (a dielectric diffuse)
-        pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal_shade[:, None],
-                                     intensity[:, None], cfg.diffuse_metal_weight, lambertian=cfg.lambertian)
-    else:
-        pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal_shade[:, None],
-                         intensity[:, None], lambertian=cfg.lambertian, specular=True)
+    rad = rad.float()
+    unlit_sample = rays.unlit[sel_idx // S] if (train and rays.unlit is not None) else None
+    pbr, light_dir, intensity, albedo, rough, metal = _shade_points(model, cfg, xs, vs, ns, fs, unlit_sample)
 
     P = pts.shape[0]
     rad_full = pts.new_zeros(P, 3).index_copy(0, sel_idx, rad)
@@ -261,6 +287,17 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         "x": pts[flat_max], "normal": normals[flat_max], "light_dir": light_dir[k],
         "intensity": intensity[k], "albedo": albedo[k], "roughness": rough[k], "metallic": metal[k],
     }
+    if cfg.surface_refine and cfg.alpha_mode == "sample":
+        # the same quantities at the zero crossing inside the max-weight section
+        xr = o + d * surface_crossing_t(z, f, idx)[:, None]
+        _, fr = model.sdf(xr)
+        from nepf_core.fields.fd_normals import sdf_gradient_fd
+        gr, _ = sdf_gradient_fd(sdf_only, xr, model.sdf.fd_step(), scheme="tetra", center="mean")
+        nr = gr / gr.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+        unlit_ray = rays.unlit if (train and rays.unlit is not None) else None
+        rgb_surf, ld_r, int_r, alb_r, rough_r, metal_r = _shade_points(model, cfg, xr, d, nr, fr, unlit_ray)
+        surf = {"x": xr, "normal": nr, "light_dir": ld_r, "intensity": int_r, "albedo": alb_r,
+                "roughness": rough_r, "metallic": metal_r}
     if train and cfg.albedo_smooth_sigma > 0:
         xj = surf["x"].detach() + cfg.albedo_smooth_sigma * torch.randn(surf["x"].shape, device=o.device,
                                                                         dtype=surf["x"].dtype)
@@ -270,8 +307,9 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
             surf["albedo_jitter"] = model.material(xj, surf["normal"].detach(), fj)[0].float()
     if need_surface_extras:
         with torch.no_grad():
-            diffuse_only = bsdf.shade(ns[k], light_dir[k], -vs[k], albedo[k], rough[k][:, None], metal[k][:, None],
-                                      intensity[k][:, None], lambertian=cfg.lambertian, specular=False)
+            diffuse_only = bsdf.shade(surf["normal"], surf["light_dir"], -d, surf["albedo"],
+                                      surf["roughness"][:, None], surf["metallic"][:, None],
+                                      surf["intensity"][:, None], lambertian=cfg.lambertian, specular=False)
             total = rgb_surf.detach().sum(-1)
             surf["specular"] = ((total - diffuse_only.sum(-1)).clamp_min(0) / total.clamp_min(1e-6))
             surf["specular_abs"] = (rgb_surf.detach() - diffuse_only).clamp_min(0).mean(-1)
