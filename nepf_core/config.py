@@ -146,7 +146,8 @@ def fast() -> NePFConfig:
     albedo smoothness term (docs/FAST.md, "Albedo in unlit regions"; the opt-in material
     switches measured in "Why the spot_textured albedo is constant" are off here), and, only
     once adaptivity has dropped the specular lobe, an albedo flatness term (docs/FAST.md, "What
-    fixed it")."""
+    fixed it"). L_surf is shaded at the SDF zero crossing of the max-weight section
+    (``render.surface_refine``, docs/FAST.md "Shading L_surf at the zero crossing")."""
     head = HeadConfig(width=64, depth=2, activation="relu", n_freqs_v=4)
     return NePFConfig(
         name="fast",
@@ -155,7 +156,8 @@ def fast() -> NePFConfig:
                           material=HeadConfig(width=64, depth=2), occupancy_resolution=64),
         render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1, sampler="neus",
                             normals="fd", alpha_mode="sample", head_weight_threshold=1e-4,
-                            eikonal_fraction=0.1, unlit_albedo_stopgrad=True, albedo_smooth_sigma=0.02),
+                            eikonal_fraction=0.1, unlit_albedo_stopgrad=True, albedo_smooth_sigma=0.02,
+                            surface_refine=True),
         loss=LossConfig(w_hessian=0.0, w_albedo_smooth=2e-4, w_albedo_flat=3e-6),
         train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,
                           anneal_end=2000, log_every=20, sync_every=500, checkpoint_every=1000,
