@@ -114,8 +114,6 @@ class Adaptivity:
         self._lobe_gain = None
         self._drop_last = None
         self._drop_sum, self._drop_n = 0.0, 0
-        self._keep_ema = None
-        self._drawn_last = None
         self._cams = None
         self._view_spread = None
         self._fit_err = None
@@ -234,9 +232,6 @@ class Adaptivity:
         keep = hit | (u < self.miss_keep)
         thin = int(keep.sum()) >= 8 and not bool(keep.all())
         dropped = 1.0 - float(keep.float().mean()) if thin else 0.0
-        kf = 1.0 - dropped
-        self._keep_ema = kf if self._keep_ema is None else 0.9 * self._keep_ema + 0.1 * kf
-        self._drawn_last = len(rays)
         self._drop_last = dropped
         self._drop_sum += dropped
         self._drop_n += 1
@@ -252,25 +247,6 @@ class Adaptivity:
         # miss stands for 1 / miss_keep misses
         kept.weight = torch.where(hit[keep], 1.0, 1.0 / max(self.miss_keep, 1e-12)).to(rays.origins.dtype)
         return kept
-
-    def rays_to_draw(self, batch: int) -> int:
-        """How many rays to draw this step so that about ``k B`` stay after
-        :meth:`thin_empty_rays` (``k = train.kept_rays_frac``, ``B = train.batch_rays``):
-        ``clamp(round(k B / q), batch, 8 B)`` with ``q`` the kept share of the drawn rays
-        (a moving average over steps, ``q <- 0.9 q + 0.1 q_step``). ``batch`` when ``k = 0``,
-        adaptivity is off, or no step has been thinned yet (``q`` unknown)."""
-        k = float(getattr(self.cfg.train, "kept_rays_frac", 0.0))
-        if not self.enabled or k <= 0 or self._keep_ema is None:
-            return batch
-        big = 8 * int(self.cfg.train.batch_rays)
-        want = int(round(k * self.cfg.train.batch_rays / max(self._keep_ema, 1e-3)))
-        n = min(max(want, batch), big)
-        if n != batch and not any(d["decision"] == "refill_thinned_batch" for d in self.decisions):
-            self.record("refill_thinned_batch", {"kept_rays_frac": k, "drawn": n},
-                        f"{1 - self._keep_ema:.1%} of the drawn rays leave the batch as empty: {n} rays are "
-                        f"drawn instead of {batch} so that about {k:g} x {self.cfg.train.batch_rays} stay and "
-                        "the time saved goes to rays on the object", 0)
-        return n
 
     # -- during training --
     def wants_specular_stats(self, step: int) -> bool:
@@ -323,8 +299,6 @@ class Adaptivity:
             s["occupied_length"] = self._occ_len
         if self._drop_last is not None:
             s["rays_left_out"] = self._drop_last
-        if self._drawn_last is not None:
-            s["rays_drawn"] = self._drawn_last
         return s
 
     def on_step(self, step: int, out, losses: dict) -> None:

@@ -50,11 +50,6 @@ class TrainConfig:
     """Render held-out views every N-th pixel (speed)."""
     target_samples: int = 0
     """Fast preset: adapt the ray batch to keep about this many shaded samples per step (0: fixed batch)."""
-    kept_rays_frac: float = 0.0
-    """With ray thinning on (adaptivity, ``Adaptivity.thin_empty_rays``): draw enough rays that
-    about ``kept_rays_frac * batch_rays`` stay in the batch after the empty ones leave it (never
-    fewer drawn than ``batch_rays``, at most ``8 * batch_rays``). 0: draw ``batch_rays`` and keep
-    what survives. The time the left-out rays would have cost goes to more rays on the object."""
     max_nonfinite_steps: int = 50
     """Fail the run after this many skipped (non-finite) steps."""
     grad_clip: float = 0.0

@@ -381,7 +381,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
             if model.occupancy is not None and step % tc.occupancy_every == 0:
                 adapt.update_occupancy(model, step)
 
-            rays = sampler.sample(adapt.rays_to_draw(batch), generator=gen)
+            rays = sampler.sample(batch, generator=gen)
             if unlit_thr is not None:
                 rays.unlit = rays.rgb.amax(-1) < unlit_thr
             rays = adapt.thin_empty_rays(model, rays, step, generator=gen)

@@ -529,34 +529,6 @@ def test_empty_rays_stay_without_adaptivity_or_before_the_first_refresh():
     assert on.thin_empty_rays(fresh, rays, step=0) is rays and not _names(on, "empty_rays")
 
 
-def test_thinned_batch_is_refilled_to_the_asked_share_of_the_batch(tmp_path):
-    cfg, model, rays = _sphere_model_and_rays()               # 24 hits of 64 drawn rays
-    cfg.train.batch_rays = 64
-    a = Adaptivity(cfg, enabled=True, iters_fixed=False)
-    a.miss_keep = 0.0
-    assert a.rays_to_draw(64) == 64                           # k = 0: the batch as asked
-    cfg.train.kept_rays_frac = 0.75
-    assert a.rays_to_draw(64) == 64                           # nothing thinned yet: share unknown
-    a.thin_empty_rays(model, rays, step=0)
-    # kept share 24/64: to keep 0.75 x 64 = 48 rays, draw 48 / (24/64) = 128
-    assert a.rays_to_draw(64) == 128
-    (d,) = _names(a, "refill_thinned_batch")
-    assert d["value"] == {"kept_rays_frac": 0.75, "drawn": 128}
-    cfg.train.kept_rays_frac = 0.2                            # already more than asked: never fewer
-    assert a.rays_to_draw(64) == 64
-    cfg.train.kept_rays_frac = 100.0                          # bounded by 8 x batch_rays
-    assert a.rays_to_draw(64) == 8 * 64
-    # the moving average of the kept share: one step keeping everything moves it by a tenth
-    cfg.train.kept_rays_frac = 1.0
-    a.thin_empty_rays(model, rays.index(torch.arange(24)), step=1)   # hits only: nothing thinned
-    q = 0.9 * 24 / 64 + 0.1 * 1.0
-    assert a.rays_to_draw(64) == round(64 / q)
-    assert a.step_stats()["rays_drawn"] == 24
-    off = Adaptivity(cfg, enabled=False, iters_fixed=False)
-    assert off.rays_to_draw(64) == 64
-    assert len(_names(a, "refill_thinned_batch")) == 1        # recorded once
-
-
 def test_kept_misses_carry_importance_weights_and_the_mask_loss_stays_unbiased():
     from nepf_core.losses import mask_bce
     cfg, model, rays = _sphere_model_and_rays()
