@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import torch
 
-from nepf_core.config import tiny
+from nepf_core.config import fast, tiny
 from nepf_core.data.detect import load_scene
 from nepf_core.data.synth import PRESETS, make_scene
 from nepf_core.evaluate import render_view
@@ -49,6 +49,33 @@ def _cfg():
     return cfg
 
 
+def _assert_run_finite(run, scene) -> list[dict]:
+    """Every logged loss, ``inv_s`` and ``lr`` finite, no step skipped, every floating
+    checkpoint tensor finite, and a rendered view finite at full size. Returns the train records."""
+    recs = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
+    train = [r for r in recs if r["kind"] == "train"]
+    assert train
+    for r in train:
+        assert r["nonfinite_steps"] == 0
+        for k, v in r.items():
+            if k.startswith("loss") or k in ("inv_s", "lr"):
+                assert v is not None and math.isfinite(v), f"step {r['step']}: {k} = {v}"
+    rep = json.loads((run / "report.json").read_text())
+    assert rep["nonfinite_steps"] == 0
+
+    ck = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)
+    for k, v in ck["model"].items():
+        if torch.is_tensor(v) and v.is_floating_point():
+            assert torch.isfinite(v).all(), f"checkpoint parameter {k} is not finite"
+
+    model, cfg, _ = load_model(run, "cpu")
+    view = render_view(model, PixelSampler(scene, "cpu"), 0, cfg.render)
+    for ch, arr in view.items():
+        assert arr.shape[:2] == (scene.height, scene.width)
+        assert np.isfinite(arr).all(), f"rendered channel {ch} is not finite"
+    return train
+
+
 @pytest.mark.parametrize("name", list(SCENES))
 def test_tiny_fit_on_stiff_scene_stays_finite_and_meshes(name, tmp_path):
     kw = {"n_views": 4, **SCENES[name]}
@@ -66,27 +93,9 @@ def test_tiny_fit_on_stiff_scene_stays_finite_and_meshes(name, tmp_path):
     assert res.status == "succeeded" and res.step == ITERS
     assert res.nonfinite_steps == 0, f"{res.nonfinite_steps} steps skipped by the non-finite guard"
 
-    recs = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
-    train = [r for r in recs if r["kind"] == "train"]
+    train = _assert_run_finite(run, scene)
     assert len(train) == ITERS // 4
-    for r in train:
-        assert r["nonfinite_steps"] == 0
-        for k, v in r.items():
-            if k.startswith("loss") or k in ("inv_s", "lr"):
-                assert v is not None and math.isfinite(v), f"step {r['step']}: {k} = {v}"
-    rep = json.loads((run / "report.json").read_text())
-    assert rep["nonfinite_steps"] == 0
-
-    ck = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)
-    for k, v in ck["model"].items():
-        if v.is_floating_point():
-            assert torch.isfinite(v).all(), f"checkpoint parameter {k} is not finite"
-
     model, cfg, state = load_model(run, "cpu")
-    view = render_view(model, PixelSampler(scene, "cpu"), 0, cfg.render)
-    for ch, arr in view.items():
-        assert arr.shape[:2] == (scene.height, scene.width)
-        assert np.isfinite(arr).all(), f"rendered channel {ch} is not finite"
 
     # the SDF starts as a sphere of radius 0.5 (normalised): after 16 steps there is still a surface
     wfn = np.asarray(state["extra"]["world_from_norm"])
@@ -120,7 +129,6 @@ def test_fast_fit_on_stiff_scene_stays_finite(name, tmp_path):
     """The ``fast`` path (grid SDF, opacity from sample SDFs, finite-difference normals, L_surf at
     the refined zero crossing, occupancy-thinned rays) on the same scenes: no skipped step,
     finite losses, parameters and renders, and a non-empty finite mesh."""
-    from nepf_core.config import fast
     kw = {"n_views": 4, **SCENES[name]}
     make_scene(tmp_path / "scene", resolution=24, n_test=0, supersample=1, write_mesh=False, **kw)
     scene = load_scene(tmp_path / "scene" / "dtu")
@@ -134,20 +142,7 @@ def test_fast_fit_on_stiff_scene_stays_finite(name, tmp_path):
     run = tmp_path / "run"
     res = fit(scene, run, cfg, device="cpu")
     assert res.status == "succeeded" and res.step == ITERS and res.nonfinite_steps == 0
-    train = [json.loads(l) for l in (run / "metrics.jsonl").read_text().splitlines()]
-    train = [r for r in train if r["kind"] == "train"]
-    assert train
-    for r in train:
-        for k, v in r.items():
-            if k.startswith("loss"):
-                assert v is not None and math.isfinite(v), f"step {r['step']}: {k} = {v}"
-    ck = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)
-    for k, v in ck["model"].items():
-        if torch.is_tensor(v) and v.is_floating_point():
-            assert torch.isfinite(v).all(), f"checkpoint parameter {k} is not finite"
-    model, rcfg, state = load_model(run, "cpu")
-    view = render_view(model, PixelSampler(scene, "cpu"), 0, rcfg.render)
-    for ch, arr in view.items():
-        assert np.isfinite(arr).all(), f"rendered channel {ch} is not finite"
+    _assert_run_finite(run, scene)
+    model, _, state = load_model(run, "cpu")
     mesh = world_mesh(ModelFieldQuery(model), np.asarray(state["extra"]["world_from_norm"]), resolution=48)
     assert len(mesh.faces) > 0 and np.isfinite(np.asarray(mesh.vertices)).all()

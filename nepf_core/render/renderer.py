@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 
 from nepf_core import bsdf
+from nepf_core.fields.fd_normals import sdf_gradient_fd
 from nepf_core.fields.gradients import hessian_diag_from_pairs, sdf_gradient_autograd, sdf_gradient_central
 from nepf_core.rays import RayBatch
 from nepf_core.render.neus import (alpha_from_sdf, annealed_cos, max_weight_index, surface_crossing_t,
@@ -216,7 +217,6 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         if train and cfg.eikonal_fraction > 0:
             need |= torch.rand(need.shape, device=o.device) < cfg.eikonal_fraction
         gidx = need.nonzero(as_tuple=True)[0]
-        from nepf_core.fields.fd_normals import sdf_gradient_fd
         g_sub, _ = sdf_gradient_fd(sdf_only, pts[gidx], model.sdf.fd_step(), scheme="tetra", center="mean")
         grad = pts.new_zeros(pts.shape[0], 3).index_copy(0, gidx, g_sub)
         gnorm_sub = g_sub.norm(dim=-1)
@@ -291,7 +291,6 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         # the same quantities at the zero crossing inside the max-weight section
         xr = o + d * surface_crossing_t(z, f, idx)[:, None]
         _, fr = model.sdf(xr)
-        from nepf_core.fields.fd_normals import sdf_gradient_fd
         gr, _ = sdf_gradient_fd(sdf_only, xr, model.sdf.fd_step(), scheme="tetra", center="mean")
         nr = gr / gr.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         unlit_ray = rays.unlit if (train and rays.unlit is not None) else None
