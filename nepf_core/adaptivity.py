@@ -33,6 +33,17 @@ Rules (each decision is logged with its step and reason):
   PSNR inside the silhouette was 34.6 dB against 56.6 dB for the radiance network on the
   same views (bench/RESULTS.md). A lobe kept to the end is recorded as kept, with the last
   spread, metallic, share and :meth:`Adaptivity.lobe_residual_gain`.
+* **Metallic** (only with ``train.adaptive_metallic``, off by default: it cost held-out PBR
+  PSNR where it was measured, config docstring). While the lobe is on, the same checks read the colour of the learned
+  radiance's highlights (:func:`nepf_core.view_dependence.highlight_chroma`: the dichromatic
+  model; a dielectric's highlight has the light's colour, a metal's the surface's). When the
+  spread shows a highlight (``>= view_spread_thr``), the body is coloured (saturation ``>=
+  dielectric_min_saturation``) and the highlight's chromaticity is at least
+  ``dielectric_ratio`` of the body's saturation away from the body's for ``patience`` checks,
+  the surface is a dielectric: ``render.metallic_scale`` fades from 1 to 0 over
+  ``lobe_fade_steps`` (shaded and exported metallic ``s m``), and comes back (the same fade) if
+  the ratio falls under half that for ``patience`` checks. Grey bodies (torus_stiff's
+  near-white metal, bunny_dark) leave metallic free.
 * **Hessian regulariser.** Only while the eikonal residual (EMA) is above ``eik_thr``.
 * **Iterations.** When the user did not fix the iteration count, stop when the held-out
   PSNR (the mean of the last ``plateau_window`` evaluations, 3 in every preset: one evaluation
@@ -88,6 +99,8 @@ class Adaptivity:
     min_coarse_samples = 8
     miss_keep = 0.1
     coarse_spacing_cells = 0.5
+    dielectric_ratio = 0.5
+    dielectric_min_saturation = 0.05
 
     def __init__(self, cfg, *, enabled: bool, iters_fixed: bool) -> None:
         self.cfg = cfg
@@ -118,6 +131,9 @@ class Adaptivity:
         self._view_spread = None
         self._fit_err = None
         self._fade_start = None
+        self._chroma = None
+        self._metal_streak = 0
+        self._metal_fade = None   # [step started, scale at the start, target scale]
 
     # -- bookkeeping --
     def record(self, decision: str, value, reason: str, step: int = 0) -> None:
@@ -132,7 +148,9 @@ class Adaptivity:
                 "skip_sum": self._skip_sum, "skip_n": self._skip_n, "occ_len": self._occ_len,
                 "n_samples_occupied": self.cfg.render.n_samples_occupied,
                 "drop_sum": self._drop_sum, "drop_n": self._drop_n, "view_spread": self._view_spread,
-                "fade_start": self._fade_start, "diffuse_metal_weight": self.cfg.render.diffuse_metal_weight}
+                "fade_start": self._fade_start, "diffuse_metal_weight": self.cfg.render.diffuse_metal_weight,
+                "metallic_scale": self.cfg.render.metallic_scale, "metal_fade": self._metal_fade,
+                "metal_streak": self._metal_streak}
 
     def load_state(self, s: dict) -> None:
         if not s:
@@ -156,6 +174,9 @@ class Adaptivity:
         self._fade_start = s.get("fade_start")
         self.cfg.render.diffuse_metal_weight = s.get("diffuse_metal_weight", self.cfg.render.diffuse_metal_weight)
         self.cfg.render.n_samples_occupied = s.get("n_samples_occupied", self.cfg.render.n_samples_occupied)
+        self.cfg.render.metallic_scale = s.get("metallic_scale", self.cfg.render.metallic_scale)
+        self._metal_fade = s.get("metal_fade")
+        self._metal_streak = s.get("metal_streak", 0)
 
     # -- before training --
     def decide_before_training(self, scene) -> None:
@@ -283,11 +304,13 @@ class Adaptivity:
             err = float((rgb_r.detach()[fg] - rays.rgb[fg]).abs().sum() / rays.rgb[fg].abs().sum().clamp_min(1e-8))
             self._fit_err = err
             if err > self.radiance_fit_max:
-                self._view_spread = None
+                self._view_spread = self._chroma = None
                 return
         r = radiance_view_spread(model, x, self._cams.to(x.device))
         if math.isfinite(r["spread"]):
             self._view_spread = r["spread"]
+        gap, sat = r["chroma_gap"], r["body_saturation"]
+        self._chroma = (gap, sat) if math.isfinite(gap) and math.isfinite(sat) else None
 
     def step_stats(self) -> dict:
         s = dict(self._stats)
@@ -315,6 +338,7 @@ class Adaptivity:
         if not self.enabled:
             return
         self._fade_metal(step)
+        self._fade_metallic_scale(step)
         if step % self.check_every == 0:
             self._decide_coarse_samples(step)
         total = self.cfg.train.iters
@@ -343,6 +367,8 @@ class Adaptivity:
             self._stats["radiance_view_spread"] = spread
         # the radiance's view spread decides where it can be measured; the material's own
         # numbers only when it cannot (metallic stays ~0.5 on a Lambertian sphere, docstring)
+        if self.cfg.render.specular:
+            self._decide_dielectric(step, spread)
         flat = spread is not None and spread < self.view_spread_thr
         diffuse = flat if spread is not None else (metal < self.metal_thr and share < self.spec_thr)
         if self.cfg.render.specular:
@@ -363,6 +389,50 @@ class Adaptivity:
                            f"cameras (> {2 * self.view_spread_thr:.1%})")
         elif spread is None and share > 2 * self.spec_thr:
             self._set_lobe(True, step, f"specular share would be {share:.3%} > {2 * self.spec_thr:.0%}")
+
+    def _decide_dielectric(self, step: int, spread: float | None) -> None:
+        """The metallic rule (module docstring): from this check's highlight colour
+        (``self._chroma``, measured by :meth:`check_view_spread`), count checks that disagree
+        with the current state and switch after ``patience`` of them in a row."""
+        if self._chroma is None or spread is None or spread < self.view_spread_thr:
+            return   # no highlight to read
+        gap, sat = self._chroma
+        self._stats["highlight_chroma_gap"], self._stats["body_saturation"] = gap, sat
+        if not self.cfg.train.adaptive_metallic or sat < self.dielectric_min_saturation:
+            return   # a grey body: the highlight's colour cannot tell
+        ratio = gap / sat
+        dielectric = (self._metal_fade[2] if self._metal_fade else self.cfg.render.metallic_scale) == 0.0
+        flip = ratio < 0.5 * self.dielectric_ratio if dielectric else ratio > self.dielectric_ratio
+        self._metal_streak = self._metal_streak + 1 if flip else 0
+        if self._metal_streak < self.patience:
+            return
+        self._metal_streak = 0
+        target = 1.0 if dielectric else 0.0
+        self._metal_fade = [step, self.cfg.render.metallic_scale, target]
+        if dielectric:
+            why = (f"the highlights now take the surface's colour: chromaticity gap {gap:.3f} is {ratio:.2f} of the "
+                   f"body saturation {sat:.3f} (< {0.5 * self.dielectric_ratio:g}) for {self.patience} checks: metallic "
+                   f"free again (fades back over {self.lobe_fade_steps} steps)")
+        else:
+            why = (f"the highlights keep the light's colour, not the surface's (dichromatic model): their chromaticity is "
+                   f"{gap:.3f} from the body's, {ratio:.2f} of the body saturation {sat:.3f} (> {self.dielectric_ratio:g}) "
+                   f"for {self.patience} checks, with view spread {spread:.2%}: a dielectric, metallic faded to 0 over "
+                   f"{self.lobe_fade_steps} steps (F0 = 0.04)")
+        self.record("dielectric", not dielectric, why, step)
+        self._restart_plateau_clock()
+
+    def _fade_metallic_scale(self, step: int) -> None:
+        """``render.metallic_scale`` goes linearly from its value at the decision to the target
+        over ``lobe_fade_steps`` (the image changes by a bounded amount per step, as for the lobe)."""
+        if self._metal_fade is None:
+            return
+        t0, s0, target = self._metal_fade
+        q = min(1.0, (step - t0) / max(self.lobe_fade_steps, 1))
+        self.cfg.render.metallic_scale = s0 + (target - s0) * q
+        if q >= 1.0:
+            self.cfg.render.metallic_scale = target
+            self._metal_fade = None
+            self._restart_plateau_clock()
 
     def _set_lobe(self, on: bool, step: int, reason: str) -> None:
         """Switch the GGX lobe and what goes with it, and record why.
@@ -552,9 +622,25 @@ class Adaptivity:
                         f"{st['specular_share']:.1%} (drop below {self.spec_thr:.0%})"
                         + ("" if gain is None else f", and without it the surface error would be {gain:+.0%}"),
                         step)
+        if self.enabled and self.cfg.render.specular and self._stats and \
+                not any(d["decision"] == "dielectric" for d in self.decisions):
+            gap, sat = self._stats.get("highlight_chroma_gap"), self._stats.get("body_saturation")
+            self.record("dielectric", False, "metallic left free: " + (
+                f"metallic scaled by {self.cfg.render.metallic_scale:g} as configured" if self.cfg.render.metallic_scale != 1.0
+                else "the metallic decision is off (train.adaptive_metallic; measured, it cost held-out PBR PSNR on "
+                f"spot_textured); the highlights' colour read {gap:.3f} from the body's, body saturation {sat:.3f}"
+                if not self.cfg.train.adaptive_metallic and gap is not None else
+                "the metallic decision is off (train.adaptive_metallic)" if not self.cfg.train.adaptive_metallic else
+                "no highlight colour was measured (no view spread above "
+                f"{self.view_spread_thr:.1%}, or the radiance did not yet explain the lit pixels)" if gap is None else
+                f"the body is grey (saturation {sat:.3f} < {self.dielectric_min_saturation}), so the highlight's colour "
+                "cannot tell a metal from a dielectric" if sat < self.dielectric_min_saturation else
+                f"at the last check the highlights' chromaticity was {gap:.3f} from the body's, {gap / sat:.2f} of the "
+                f"body saturation {sat:.3f} (a dielectric above {self.dielectric_ratio:g})"), step)
         rep = {"status": status, "step": step, "nonfinite_steps": nonfinite, "decisions": self.decisions,
                "final_switches": {"specular": self.cfg.render.specular, "mask_loss": self.use_mask_loss,
-                                  "background": self.cfg.model.background, "w_hessian": self.cfg.loss.w_hessian}}
+                                  "background": self.cfg.model.background, "w_hessian": self.cfg.loss.w_hessian,
+                                  "metallic_scale": self.cfg.render.metallic_scale}}
         if self._occ_frac is not None:
             rep["occupied_fraction"] = self._occ_frac
         if self._drop_n:

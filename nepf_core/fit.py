@@ -357,7 +357,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
     model.train()
     emit_progress("training")
     t_log, n_rays_acc, n_samp_acc = time.perf_counter(), 0, 0
-    shading_prev = (cfg.render.specular, cfg.render.diffuse_metal_weight)
+    shading_prev = (cfg.render.specular, cfg.render.diffuse_metal_weight, cfg.render.metallic_scale)
     try:
         while step < total:
             if cb.stop_requested():
@@ -425,7 +425,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
             if need_extras:
                 adapt.check_view_spread(model, out, rays)
             adapt.on_step(step, out, losses)   # after the checks above, whose statistics it logs
-            shading = (cfg.render.specular, cfg.render.diffuse_metal_weight)
+            shading = (cfg.render.specular, cfg.render.diffuse_metal_weight, cfg.render.metallic_scale)
             if ema is not None and shading != shading_prev:
                 ema.reset(model)  # weights averaged across a change of the shading model do not fit it
             shading_prev = shading
@@ -490,6 +490,8 @@ def load_model(run_dir, device: str = "auto") -> tuple[NePFModel, NePFConfig, di
         cfg.render.specular = bool(switches["specular"])
     if "diffuse_metal_weight" in switches:
         cfg.render.diffuse_metal_weight = float(switches["diffuse_metal_weight"])
+    if "metallic_scale" in switches:
+        cfg.render.metallic_scale = float(switches["metallic_scale"])
     model.eval()
     return model, cfg, state
 

@@ -126,6 +126,7 @@ def export_run(run_dir, *, device: str = "auto", texture_size: int = 1024, max_f
     import numpy as np
     dev = next(model.parameters()).device
     export_asset(ModelFieldQuery(model, specular=cfg.render.specular,
-                                 diffuse_metal_weight=cfg.render.diffuse_metal_weight), np.asarray(world_from_norm), run_dir, texture_size=texture_size,
+                                 diffuse_metal_weight=cfg.render.diffuse_metal_weight,
+                                 metallic_scale=cfg.render.metallic_scale), np.asarray(world_from_norm), run_dir, texture_size=texture_size,
                  max_faces=max_faces, mesh_resolution=mesh_resolution, device=dev, log=log, previews=previews)
     return Path(run_dir) / "manifest.json"

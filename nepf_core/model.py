@@ -95,14 +95,16 @@ class ModelFieldQuery:
     """Adapter from :class:`NePFModel` to the export's FieldQuery protocol (chunked)."""
 
     def __init__(self, model: NePFModel, chunk: int = 65536, *, specular: bool = True,
-                 diffuse_metal_weight: float = 0.0) -> None:
+                 diffuse_metal_weight: float = 0.0, metallic_scale: float = 1.0) -> None:
         """``specular=False``: the run dropped the GGX lobe, so :meth:`material` returns the
         material it was shaded with, metallic 0 (:func:`nepf_core.bsdf.diffuse_only_material`
-        with ``diffuse_metal_weight``, the run's ``render.diffuse_metal_weight``)."""
+        with ``diffuse_metal_weight``, the run's ``render.diffuse_metal_weight``).
+        ``metallic_scale``: the run's ``render.metallic_scale`` (metallic ``s m``, as shaded)."""
         self.model = model
         self.chunk = chunk
         self.specular = specular
         self.diffuse_metal_weight = diffuse_metal_weight
+        self.metallic_scale = metallic_scale
 
     def _chunks(self, fn, *xs):
         outs = [fn(*[x[i:i + self.chunk] for x in xs]) for i in range(0, xs[0].shape[0], self.chunk)]
@@ -118,6 +120,8 @@ class ModelFieldQuery:
 
     def material(self, x: Tensor, n: Tensor):
         albedo, rough, metal = self._chunks(self.model.query_material, x, n)
+        if self.metallic_scale != 1.0:
+            metal = metal * self.metallic_scale
         if not self.specular:
             from nepf_core.bsdf import diffuse_only_material
             albedo, metal = diffuse_only_material(albedo, metal, self.diffuse_metal_weight)

@@ -42,10 +42,15 @@ def radiance_view_spread(model, x: Tensor, cam_centers: Tensor, *, min_cos: floa
     Args:
         model: :class:`nepf_core.model.NePFModel` (``sdf``, ``radiance``).
         x: ``[N, 3]`` surface points; cam_centers: ``[C, 3]`` camera centres (normalised frame).
+    The same pass measures the colour of the highlights (:func:`highlight_chroma`), from
+    ``c_max_i`` (the RGB of point ``i``'s brightest facing view) and ``c_med_i`` (its per-channel
+    median over the facing views).
+
     Returns:
-        ``{"spread": float (nan if no point qualifies), "n_points": int}``.
+        ``{"spread": float (nan if no point qualifies), "n_points": int,
+        "chroma_gap", "body_saturation": float}`` (the last two as :func:`highlight_chroma`).
     """
-    nan = {"spread": float("nan"), "n_points": 0}
+    nan = {"spread": float("nan"), "n_points": 0, "chroma_gap": float("nan"), "body_saturation": float("nan")}
     if x.shape[0] == 0 or cam_centers.shape[0] < 2:
         return nan
     from nepf_core.fields.gradients import sdf_gradient_central
@@ -66,7 +71,47 @@ def radiance_view_spread(model, x: Tensor, cam_centers: Tensor, *, min_cos: floa
     rgb = model.radiance(x[ii], -to_cam[ii, cc], g[ii], feat[ii]).float()
     y = x.new_full(facing.shape, float("nan"))
     y[ii, cc] = (rgb * rgb.new_tensor(LUMA)).sum(-1)
-    ymax = y.masked_fill(~facing, float("-inf")).amax(-1)
+    ymax, imax = y.masked_fill(~facing, float("-inf")).max(-1)
     ymed = y.nanmedian(-1).values
     ymean = y.nansum(-1) / facing.sum(-1)
-    return {"spread": float((ymax - ymed).sum() / ymean.sum().clamp_min(1e-8)), "n_points": int(x.shape[0])}
+    c = x.new_full(facing.shape + (3,), float("nan"))
+    c[ii, cc] = rgb
+    c_max = c[torch.arange(c.shape[0], device=c.device), imax]                 # [N, 3]
+    c_med = c.nanmedian(1).values                                              # [N, 3]
+    chroma = highlight_chroma(c_max, c_med)
+    return {"spread": float((ymax - ymed).sum() / ymean.sum().clamp_min(1e-8)), "n_points": int(x.shape[0]),
+            **chroma}
+
+
+def chromaticity(c: Tensor) -> Tensor:
+    """``c / (r + g + b)``: ``[..., 3]`` non-negative RGB -> ``[..., 3]`` summing to 1 (grey:
+    ``(1/3, 1/3, 1/3)``; black maps to 0)."""
+    return c / c.sum(-1, keepdim=True).clamp_min(1e-8)
+
+
+def highlight_chroma(c_max: Tensor, c_med: Tensor) -> dict:
+    """Is the view-dependent light coloured like the surface (a metal) or like the light (a
+    dielectric)? The dichromatic reflection model: a dielectric's specular reflection keeps the
+    light's colour (Fresnel F0 = 0.04 for every channel) while its body reflection is tinted by the
+    albedo; a metal's specular is tinted by its albedo (F0 = base colour) and it has no body
+    reflection. With the highlight ``h_i = max(c_max_i - c_med_i, 0)`` (``[N, 3]``, the light
+    added in the brightest view) and the chromaticity ``chi(c) = c / (r + g + b)``:
+
+        chroma_gap      = sum_i w_i |chi(h_i) - chi(c_med_i)|_1 / sum_i w_i
+        body_saturation = sum_i w_i |chi(c_med_i) - (1/3, 1/3, 1/3)|_1 / sum_i w_i
+
+    weighted by the highlight's luma ``w_i = luma(h_i)`` (points without a highlight say nothing).
+    Under a white light a dielectric's highlight is grey, so ``chroma_gap = body_saturation``
+    (ratio 1); a metal's highlight has the body's chromaticity, ``chroma_gap = 0``. Under a
+    coloured light ``L`` the dielectric's highlight is ``chi(L)`` and its body ``chi(a L)``, still
+    apart unless the albedo ``a`` is grey; on a grey body (saturation ~0) the test says nothing.
+    Returns ``{"chroma_gap", "body_saturation"}`` (floats; nan when no point has a highlight)."""
+    h = (c_max - c_med).clamp_min(0.0)
+    w = (h * h.new_tensor(LUMA)).sum(-1)
+    ws = w.sum()
+    if not bool(ws > 1e-12):
+        return {"chroma_gap": float("nan"), "body_saturation": float("nan")}
+    body = chromaticity(c_med.clamp_min(0.0))
+    gap = (chromaticity(h) - body).abs().sum(-1)
+    sat = (body - 1.0 / 3.0).abs().sum(-1)
+    return {"chroma_gap": float((w * gap).sum() / ws), "body_saturation": float((w * sat).sum() / ws)}

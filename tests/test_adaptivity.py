@@ -760,3 +760,111 @@ def test_plateau_compares_the_mean_of_the_last_evaluations():
     b, _ = _adapt(iters_fixed=False, plateau_window=3)
     b.load_state(json.loads(json.dumps(climb.state())))
     assert b._recent == climb._recent
+
+
+# ---------------------------------------------------------------- dielectric (highlight colour)
+def _check(a, step, spread=0.05, chroma=(0.5, 0.5)):
+    a._view_spread, a._chroma = spread, chroma
+    a.on_step(step, _out(share=0.2, metallic=0.8), _losses())
+
+
+def test_metallic_decision_is_off_unless_asked_for_and_says_so():
+    a, cfg = _adapt()
+    assert cfg.train.adaptive_metallic is False
+    for step in range(100, 1100, 100):
+        _check(a, step)
+    assert cfg.render.metallic_scale == 1.0 and not _names(a, "dielectric")
+    assert a.step_stats()["highlight_chroma_gap"] == 0.5      # still measured and logged
+    rep = a.write_report(_tmp_json(), step=1000, status="succeeded", nonfinite=0)
+    d = [x for x in rep["decisions"] if x["decision"] == "dielectric"]
+    assert len(d) == 1 and d[0]["value"] is False and "decision is off" in d[0]["reason"]
+
+
+def test_grey_highlights_on_a_coloured_body_fade_metallic_out_and_back():
+    a, cfg = _adapt()
+    cfg.train.adaptive_metallic = True
+    assert cfg.render.metallic_scale == 1.0
+    for step in (100, 200):
+        _check(a, step)
+    assert cfg.render.metallic_scale == 1.0 and not _names(a, "dielectric")
+    _check(a, 300)
+    d = _names(a, "dielectric")
+    assert len(d) == 1 and d[0]["value"] is True and d[0]["step"] == 300 and "1.00 of the body" in d[0]["reason"]
+    n = a.lobe_fade_steps
+    a.on_step(300 + n // 4, _out(share=0.2, metallic=0.8), _losses())
+    assert cfg.render.metallic_scale == pytest.approx(0.75)
+    st = json.loads(json.dumps(a.state()))          # resume mid-fade
+    b, cfg_b = _adapt()
+    cfg_b.train.adaptive_metallic = True
+    b.load_state(st)
+    assert cfg_b.render.metallic_scale == pytest.approx(0.75)
+    b.on_step(300 + n, _out(share=0.2, metallic=0.8), _losses())
+    assert cfg_b.render.metallic_scale == 0.0 and b._metal_fade is None
+    # hysteresis: a ratio between 0.25 and 0.5 does not bring metallic back
+    for step in range(1000, 1600, 100):
+        _check(b, step, chroma=(0.2, 0.5))
+    assert cfg_b.render.metallic_scale == 0.0
+    for step in (1600, 1700, 1800):                 # body-coloured highlights: a metal after all
+        _check(b, step, chroma=(0.05, 0.5))
+    assert [x["value"] for x in _names(b, "dielectric")] == [True, False]
+    b.on_step(1800 + n, _out(share=0.2, metallic=0.8), _losses())
+    assert cfg_b.render.metallic_scale == 1.0
+
+
+@pytest.mark.parametrize("spread,chroma,why", [
+    (0.05, (0.01, 0.5), "metal-coloured highlights"),
+    (0.05, (0.03, 0.03), "grey body"),
+    (0.01, (0.5, 0.5), "no highlight (flat radiance)"),
+    (None, (0.5, 0.5), "no spread measured"),
+    (0.05, None, "no chroma measured"),
+])
+def test_metallic_stays_free_without_evidence_of_a_dielectric(spread, chroma, why):
+    a, cfg = _adapt()
+    cfg.train.adaptive_metallic = True
+    for step in range(100, 1100, 100):
+        _check(a, step, spread=spread, chroma=chroma)
+    assert cfg.render.metallic_scale == 1.0, why
+    assert not _names(a, "dielectric"), why
+    rep = a.write_report(_tmp_json(), step=1000, status="succeeded", nonfinite=0)
+    if cfg.render.specular:     # a kept lobe reports why metallic stayed free
+        d = [x for x in rep["decisions"] if x["decision"] == "dielectric"]
+        assert len(d) == 1 and d[0]["value"] is False and d[0]["reason"].startswith("metallic left free")
+    assert rep["final_switches"]["metallic_scale"] == 1.0
+
+
+def test_metallic_scale_shades_reports_and_exports_the_scaled_metallic():
+    """``render.metallic_scale = s`` renders exactly what the network's material with metallic
+    ``s m`` renders, and the export's material query returns ``s m``."""
+    from nepf_core.config import tiny as tiny_cfg
+    from nepf_core.model import ModelFieldQuery, NePFModel
+    from nepf_core.rays import RayBatch
+    from nepf_core.render.renderer import render_rays
+    torch.manual_seed(0)
+    cfg = tiny_cfg()
+    model = NePFModel(cfg.model)
+    o = torch.tensor([[0.0, 0.0, -2.5]]).expand(64, 3).contiguous()
+    d = torch.nn.functional.normalize(torch.cat([torch.randn(64, 2) * 0.1, torch.ones(64, 1)], -1), dim=-1)
+    rays = RayBatch(origins=o, directions=d)
+    cfg.render.perturb = False
+    ref = render_rays(model, rays, cfg.render, train=False)
+    cfg.render.metallic_scale = 0.3
+    out = render_rays(model, rays, cfg.render, train=False)
+    assert torch.allclose(out.surf["metallic"], 0.3 * ref.surf["metallic"], atol=1e-6)
+    assert torch.equal(out.rgb_r, ref.rgb_r)
+    # the same image as a material head whose metallic is scaled by 0.3
+    head = model.material.forward
+
+    def scaled(*args, **kw):
+        a, r, m = head(*args, **kw)
+        return a, r, 0.3 * m
+    model.material.forward = scaled
+    cfg.render.metallic_scale = 1.0
+    want = render_rays(model, rays, cfg.render, train=False)
+    model.material.forward = head
+    assert torch.allclose(out.rgb_surf, want.rgb_surf, atol=1e-6)
+    assert not torch.allclose(out.rgb_surf, ref.rgb_surf, atol=1e-4)
+    x = torch.randn(20, 3) * 0.3
+    n = torch.nn.functional.normalize(torch.randn(20, 3), dim=-1)
+    _, _, m1 = ModelFieldQuery(model).material(x, n)
+    _, _, m2 = ModelFieldQuery(model, metallic_scale=0.3).material(x, n)
+    assert torch.allclose(m2, 0.3 * m1)

@@ -223,3 +223,59 @@ def test_adaptivity_measures_the_spread_on_lit_pixels_only():
     few[:7] = False                                          # 7 lit points: no measurement
     b.check_view_spread(model, out, SimpleNamespace(mask=None, unlit=few))
     assert b._view_spread is None
+
+
+# ---------------------------------------------------------------- highlight colour
+BODY = (0.6, 0.3, 0.1)   # chromaticity (0.6, 0.3, 0.1): saturation |0.6-1/3|+|0.3-1/3|+|0.1-1/3| = 8/15
+
+
+class _ColouredRadiance(nn.Module):
+    """Body ``k BODY`` from every facing camera; the camera at +y adds a highlight ``hl``
+    (``[3]``): white for a dielectric, ``BODY``-coloured for a metal."""
+
+    def __init__(self, hl, k: float = 0.5):
+        super().__init__()
+        self.hl, self.k = torch.tensor(hl), k
+
+    def forward(self, x, v, g, feat):
+        c = (self.k * torch.tensor(BODY)).expand(x.shape[0], 3).clone()
+        return torch.where((v[:, 1] < -0.1)[:, None], c + self.hl, c)
+
+
+def _coloured(hl):
+    m = nn.Module()
+    m.sdf, m.radiance = _PlaneSDF(), _ColouredRadiance(hl)
+    return m
+
+
+def test_white_highlight_on_a_coloured_body_reads_as_a_dielectric():
+    """Views ``b, b, b + (h, h, h)``: the highlight's chromaticity is grey, so its distance to
+    the body's equals the body's saturation: 8/15 both (ratio 1)."""
+    r = radiance_view_spread(_coloured([0.2, 0.2, 0.2]), _points(), CAMS, fd_step=1e-3)
+    assert r["body_saturation"] == pytest.approx(8 / 15, rel=1e-5)
+    assert r["chroma_gap"] == pytest.approx(8 / 15, rel=1e-5)
+
+
+def test_body_coloured_highlight_reads_as_a_metal():
+    r = radiance_view_spread(_coloured([0.3 * c for c in BODY]), _points(), CAMS, fd_step=1e-3)
+    assert r["body_saturation"] == pytest.approx(8 / 15, rel=1e-5)
+    assert r["chroma_gap"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_highlight_chroma_hand_values_and_no_highlight():
+    from nepf_core.view_dependence import chromaticity, highlight_chroma
+    assert torch.allclose(chromaticity(torch.tensor([[2.0, 1.0, 1.0], [0.0, 0.0, 0.0]])),
+                          torch.tensor([[0.5, 0.25, 0.25], [0.0, 0.0, 0.0]]))
+    # two points: a red highlight (luma 0.2126) on a grey body, a grey one (luma 0.3) on a red body
+    c_med = torch.tensor([[0.5, 0.5, 0.5], [0.4, 0.0, 0.0]])
+    c_max = c_med + torch.tensor([[1.0, 0.0, 0.0], [0.3, 0.3, 0.3]])
+    r = highlight_chroma(c_max, c_med)
+    w1, w2 = 0.2126, 0.3
+    gap1, sat1 = 4 / 3, 0.0            # chi(h) = (1, 0, 0) vs body (1/3, 1/3, 1/3)
+    gap2, sat2 = 4 / 3, 4 / 3          # chi(h) grey vs body (1, 0, 0)
+    assert r["chroma_gap"] == pytest.approx((w1 * gap1 + w2 * gap2) / (w1 + w2), rel=1e-5)
+    assert r["body_saturation"] == pytest.approx((w1 * sat1 + w2 * sat2) / (w1 + w2), rel=1e-5)
+    flat = highlight_chroma(c_med, c_med)        # no view is brighter: nothing to read
+    assert math.isnan(flat["chroma_gap"]) and math.isnan(flat["body_saturation"])
+    # a highlight darker in every channel than the median does not count (clamped at 0)
+    assert math.isnan(highlight_chroma(c_med * 0.5, c_med)["chroma_gap"])

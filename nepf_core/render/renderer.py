@@ -71,6 +71,11 @@ class RenderConfig:
     (:func:`nepf_core.bsdf.shade_fading_lobe`). 0 (the default): a dielectric diffuse, metallic
     ignored, no lobe evaluated. Adaptivity fades it from 1 to 0 after dropping the lobe, so the
     shading does not jump (from the full BSDF to ``f_d``)."""
+    metallic_scale: float = 1.0
+    """The surface is shaded, reported and exported with metallic ``s m`` instead of the
+    network's ``m``. 1 (the default): the paper's free metallic. Adaptivity fades it to 0 when
+    the highlights' colour says the surface is a dielectric
+    (:func:`nepf_core.view_dependence.highlight_chroma`; report.json ``dielectric``)."""
     unlit_albedo_stopgrad: bool = False
     """Training only: on rays whose target colour is unlit (``RayBatch.unlit``, set by fit()
     from the data), the colour error of L_vol / L_surf does not reach the albedo; only the
@@ -148,6 +153,8 @@ def _shade_points(model, cfg: RenderConfig, xs: Tensor, vs: Tensor, ns: Tensor, 
         albedo, rough, metal = model.material(xs, ns, fs)
     light_dir, intensity = light_dir.float(), intensity.float()
     albedo, rough, metal = albedo.float(), rough.float(), metal.float()
+    if cfg.metallic_scale != 1.0:  # dielectric decision (adaptivity): metallic faded towards 0
+        metal = metal * cfg.metallic_scale
     albedo_shade, rough_shade, metal_shade = albedo, rough, metal
     if cfg.unlit_albedo_stopgrad and unlit is not None:
         albedo_shade = torch.where(unlit[:, None], albedo.detach(), albedo)
