@@ -246,3 +246,31 @@ def test_ema_probe_summary_over_the_last_half(tmp_path):
     assert s["ema 0.995"]["n_late"] == 3 and s["ema 0.995"]["mean_late"] == pytest.approx(71.0 / 3)
     assert s["ema 0.995"]["mean_abs_change_late"] == pytest.approx(1.5) and s["ema 0.995"]["final"] == 25.0
     assert s["live"]["mean_late"] == pytest.approx(23.0) and s["live"]["mean_abs_change_late"] == pytest.approx(3.0)
+
+
+def test_smoothed_pair_comparison_uses_running_means_of_three(tmp_path):
+    """A spike in one evaluation decides a raw first crossing but not the smoothed one.
+    Adaptive: 20, 26 (spike), 23, 24, 25 at 100..500 s; all_on: 21, 22, 24, 25, 25.3.
+    Running means of 3 from the third evaluation: adaptive 23.0 (300 s), 24.333 (400), 24.0 (500);
+    all_on 22.333, 23.667, 24.767. Smoothed finals 24.0 / 24.767 -> target 24.0: adaptive first
+    at 400 s, all_on at 500 s (20 % saved); within 0.3 dB of 24.767 (24.467): adaptive never,
+    all_on at 500 s."""
+    from bench.report import smoothed_curve, summarize, time_to_reach_smoothed, write_table
+    a = _rec("s", "fast", "adaptive", [(100, 20.0), (200, 26.0), (300, 23.0), (400, 24.0), (500, 25.0)])
+    b = _rec("s", "fast", "all_on", [(100, 21.0), (200, 22.0), (300, 24.0), (400, 25.0), (500, 25.3)])
+    sa = smoothed_curve(a)
+    assert [t for t, _ in sa] == [300.0, 400.0, 500.0]
+    assert [v for _, v in sa] == pytest.approx([23.0, 73 / 3, 24.0])
+    assert smoothed_curve(_rec("s", "fast", "adaptive", [(100, 20.0), (200, 21.0)])) == []
+    assert time_to_reach_smoothed(a, 25.0) is None and time_to_reach_smoothed(a, 23.0) == 300.0
+    (row,) = summarize({"runs": [a, b]})["adaptive_vs_all_on"]
+    (p,) = row["per_repeat"]
+    # raw: finals 25 / 25.3 -> target 25: the spike (26 at 200 s) is the adaptive run's first crossing
+    assert p["t_adaptive"] == 200
+    assert p["smooth_final_adaptive"] == pytest.approx(24.0) and p["smooth_final_all_on"] == pytest.approx(74.3 / 3)
+    assert p["smooth_t_adaptive"] == 400 and p["smooth_t_all_on"] == 500
+    assert p["smooth_saved_pct"] == pytest.approx(20.0)
+    assert p["smooth_t_adaptive_tol"] is None and p["smooth_t_all_on_tol"] == 500 and p["smooth_tol_saved_pct"] is None
+    write_table({"runs": [a, b]}, summarize({"runs": [a, b]}), tmp_path / "t.md")
+    assert "| s | all_on | 0 | 24.00 / 24.77 | -0.77 | 400 / 500 | 20% | not reached / 500 | n/a% |" in \
+        (tmp_path / "t.md").read_text()
