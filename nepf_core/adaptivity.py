@@ -398,7 +398,9 @@ class Adaptivity:
             return   # no highlight to read
         gap, sat = self._chroma
         self._stats["highlight_chroma_gap"], self._stats["body_saturation"] = gap, sat
-        if not self.cfg.train.adaptive_metallic or sat < self.dielectric_min_saturation:
+        if not self.cfg.train.adaptive_metallic:
+            return   # measured and logged only
+        if sat < self.dielectric_min_saturation:
             return   # a grey body: the highlight's colour cannot tell
         ratio = gap / sat
         dielectric = (self._metal_fade[2] if self._metal_fade else self.cfg.render.metallic_scale) == 0.0
@@ -420,6 +422,27 @@ class Adaptivity:
                    f"{self.lobe_fade_steps} steps (F0 = 0.04)")
         self.record("dielectric", not dielectric, why, step)
         self._restart_plateau_clock()
+
+    def _metallic_free_reason(self) -> str:
+        """Why no dielectric decision was taken (for a kept lobe's report), from the last check's
+        highlight colour in ``self._stats``."""
+        gap, sat = self._stats.get("highlight_chroma_gap"), self._stats.get("body_saturation")
+        if self.cfg.render.metallic_scale != 1.0:
+            return f"metallic scaled by {self.cfg.render.metallic_scale:g} as configured"
+        if not self.cfg.train.adaptive_metallic:
+            why = "the metallic decision is off (train.adaptive_metallic"
+            if gap is None:
+                return why + ")"
+            return (why + "; measured, it cost held-out PBR PSNR on spot_textured); the highlights' colour read "
+                    f"{gap:.3f} from the body's, body saturation {sat:.3f}")
+        if gap is None:
+            return (f"no highlight colour was measured (no view spread above {self.view_spread_thr:.1%}, or the "
+                    "radiance did not yet explain the lit pixels)")
+        if sat < self.dielectric_min_saturation:
+            return (f"the body is grey (saturation {sat:.3f} < {self.dielectric_min_saturation}), so the highlight's "
+                    "colour cannot tell a metal from a dielectric")
+        return (f"at the last check the highlights' chromaticity was {gap:.3f} from the body's, {gap / sat:.2f} of the "
+                f"body saturation {sat:.3f} (a dielectric above {self.dielectric_ratio:g})")
 
     def _fade_metallic_scale(self, step: int) -> None:
         """``render.metallic_scale`` goes linearly from its value at the decision to the target
@@ -624,19 +647,7 @@ class Adaptivity:
                         step)
         if self.enabled and self.cfg.render.specular and self._stats and \
                 not any(d["decision"] == "dielectric" for d in self.decisions):
-            gap, sat = self._stats.get("highlight_chroma_gap"), self._stats.get("body_saturation")
-            self.record("dielectric", False, "metallic left free: " + (
-                f"metallic scaled by {self.cfg.render.metallic_scale:g} as configured" if self.cfg.render.metallic_scale != 1.0
-                else "the metallic decision is off (train.adaptive_metallic; measured, it cost held-out PBR PSNR on "
-                f"spot_textured); the highlights' colour read {gap:.3f} from the body's, body saturation {sat:.3f}"
-                if not self.cfg.train.adaptive_metallic and gap is not None else
-                "the metallic decision is off (train.adaptive_metallic)" if not self.cfg.train.adaptive_metallic else
-                "no highlight colour was measured (no view spread above "
-                f"{self.view_spread_thr:.1%}, or the radiance did not yet explain the lit pixels)" if gap is None else
-                f"the body is grey (saturation {sat:.3f} < {self.dielectric_min_saturation}), so the highlight's colour "
-                "cannot tell a metal from a dielectric" if sat < self.dielectric_min_saturation else
-                f"at the last check the highlights' chromaticity was {gap:.3f} from the body's, {gap / sat:.2f} of the "
-                f"body saturation {sat:.3f} (a dielectric above {self.dielectric_ratio:g})"), step)
+            self.record("dielectric", False, "metallic left free: " + self._metallic_free_reason(), step)
         rep = {"status": status, "step": step, "nonfinite_steps": nonfinite, "decisions": self.decisions,
                "final_switches": {"specular": self.cfg.render.specular, "mask_loss": self.use_mask_loss,
                                   "background": self.cfg.model.background, "w_hessian": self.cfg.loss.w_hessian,
