@@ -65,6 +65,10 @@ class TrainConfig:
     """> 0: keep an exponential moving average of the parameters with this decay
     (:mod:`nepf_core.weight_average`) and use it for held-out evaluation and the saved model
     (render / export / eval); training uses the live weights. 0: off (the paper)."""
+    ema_half_life_s: float = 0.0
+    """> 0: the same average, but time-based: each update's decay is ``0.5 ** (dt / h)`` with
+    ``dt`` the step's training wall time, so runs at different step rates (adaptive or not, CPU or
+    GPU) average over the same seconds. Takes the place of ``ema_decay`` when set."""
     adaptive: bool = True
     """Let fit() leave out what the scene does not need (see report.json)."""
     adaptive_metallic: bool = False

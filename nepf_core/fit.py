@@ -266,7 +266,8 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
     except (RuntimeError, TypeError):
         optimizer = torch.optim.Adam(_param_groups(model, cfg), betas=(0.9, 0.99), eps=1e-15)
     gen = torch.Generator().manual_seed(tc.seed)
-    ema = ParamEMA(model, tc.ema_decay) if tc.ema_decay > 0 else None
+    ema = (ParamEMA(model, tc.ema_decay, tc.ema_half_life_s)
+           if tc.ema_decay != 0 or tc.ema_half_life_s != 0 else None)  # a negative one: ParamEMA says so
     sampler = PixelSampler(scene, dev)
     unlit_thr = (unlit_threshold(scene.images, scene.masks, cfg.render.unlit_rel_threshold)
                  if cfg.render.unlit_albedo_stopgrad else None)
@@ -358,6 +359,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
     emit_progress("training")
     t_log, n_rays_acc, n_samp_acc = time.perf_counter(), 0, 0
     shading_prev = (cfg.render.specular, cfg.render.diffuse_metal_weight, cfg.render.metallic_scale)
+    ema_wall = wall()  # training time at the last EMA update (a time-based average weighs by it)
     try:
         while step < total:
             if cb.stop_requested():
@@ -400,7 +402,9 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
             if ok:
                 optimizer.step()
                 if ema is not None:
-                    ema.update(model)
+                    w_now = wall()
+                    ema.update(model, dt_s=max(w_now - ema_wall, 0.0))
+                    ema_wall = w_now
             else:
                 nonfinite += 1
                 optimizer.zero_grad(set_to_none=True)

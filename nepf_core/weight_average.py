@@ -6,6 +6,14 @@ after every optimiser step ``t`` (``t`` counts updates). The warm-up ``(1 + t) /
 keeps the first averages from being dominated by the initial weights. With ``beta = 0.995``
 the average spans ~200 steps (``1 / (1 - beta)``).
 
+With a half-life ``h`` seconds instead, each update's decay is ``beta = 0.5 ** (dt / h)``, ``dt``
+the training wall time of that step: a weight's share halves every ``h`` seconds of training,
+whatever the step rate. Why: fit()'s adaptivity makes a run's steps cheaper (lobe dropped, empty
+rays thinned: spot_textured 0.073-0.080 s/step against 0.153-0.163 for all_on, bench v12), so a
+per-step decay averaged the adaptive run over half the time of the all_on one. Measured on
+spot_textured seed 1 (600 s, docs/FAST.md "The late fall"): the per-step 0.995 run fell 2 dB
+over its last 150 s; with 0.9975 (the all_on averaging time at its step rate) it did not.
+
 Why: at the end of a `fast` run the held-out PBR PSNR of the live weights swings by up to
 ~1.2 dB between evaluations 30 s apart (bench/RESULTS.md), at a learning rate already on its
 floor. Adam's normalised steps keep every parameter moving by ~lr per step; the average of
@@ -28,12 +36,18 @@ __all__ = ["ParamEMA"]
 
 
 class ParamEMA:
-    """EMA of ``model``'s floating-point parameters (a detached copy on the same device)."""
+    """EMA of ``model``'s floating-point parameters (a detached copy on the same device).
 
-    def __init__(self, model: nn.Module, decay: float) -> None:
-        if not 0.0 < decay < 1.0:
+    ``decay``: the per-update ``beta``; ``half_life_s > 0`` replaces it by ``0.5 ** (dt / h)``
+    with ``dt`` passed to :meth:`update` (seconds of training since the previous update)."""
+
+    def __init__(self, model: nn.Module, decay: float = 0.0, half_life_s: float = 0.0) -> None:
+        if not half_life_s >= 0.0 or half_life_s == float("inf"):
+            raise ValueError(f"EMA half-life must be a finite number of seconds >= 0, got {half_life_s}")
+        if half_life_s == 0.0 and not 0.0 < decay < 1.0:
             raise ValueError(f"EMA decay must be in (0, 1), got {decay}")
         self.decay = float(decay)
+        self.half_life_s = float(half_life_s)
         self.names = [n for n, p in model.named_parameters() if p.is_floating_point()]
         params = dict(model.named_parameters())
         self.shadow = [params[n].detach().clone() for n in self.names]
@@ -43,15 +57,23 @@ class ParamEMA:
         params = dict(model.named_parameters())
         return [params[n] for n in self.names]
 
-    def beta(self) -> float:
-        """``beta_t = min(beta, (1 + t) / (10 + t))`` for the next update."""
+    def beta(self, dt_s: float | None = None) -> float:
+        """``beta_t = min(beta, (1 + t) / (10 + t))`` for the next update, with
+        ``beta = 0.5 ** (dt_s / half_life_s)`` when a half-life is set (``dt_s`` then required, >= 0)."""
         t = self.updates
-        return min(self.decay, (1.0 + t) / (10.0 + t))
+        if self.half_life_s > 0.0:
+            if dt_s is None or not dt_s >= 0.0:
+                raise ValueError(f"a time-based EMA needs the step's duration dt_s >= 0, got {dt_s}")
+            base = 0.5 ** (dt_s / self.half_life_s)
+        else:
+            base = self.decay
+        return min(base, (1.0 + t) / (10.0 + t))
 
     @torch.no_grad()
-    def update(self, model: nn.Module) -> None:
-        """``shadow += (1 - beta_t) (theta - shadow)`` for every parameter (one fused call)."""
-        w = 1.0 - self.beta()
+    def update(self, model: nn.Module, dt_s: float | None = None) -> None:
+        """``shadow += (1 - beta_t) (theta - shadow)`` for every parameter (one fused call);
+        ``dt_s``: seconds of training since the previous update (used with a half-life)."""
+        w = 1.0 - self.beta(dt_s)
         torch._foreach_lerp_(self.shadow, [p.detach() for p in self._live(model)], w)
         self.updates += 1
 
@@ -80,8 +102,9 @@ class ParamEMA:
                     p.copy_(s)
 
     def state_dict(self) -> dict:
-        """``{"decay", "updates", "params": {name: tensor}}`` (for checkpoints)."""
-        return {"decay": self.decay, "updates": self.updates, "params": dict(zip(self.names, self.shadow))}
+        """``{"decay", "half_life_s", "updates", "params": {name: tensor}}`` (for checkpoints)."""
+        return {"decay": self.decay, "half_life_s": self.half_life_s, "updates": self.updates,
+                "params": dict(zip(self.names, self.shadow))}
 
     def load_state_dict(self, state: dict) -> None:
         """Restore :meth:`state_dict`; a parameter missing from ``state`` keeps its copy."""
