@@ -13,6 +13,9 @@ rays thinned: spot_textured 0.073-0.080 s/step against 0.153-0.163 for all_on, b
 per-step decay averaged the adaptive run over half the time of the all_on one. Measured on
 spot_textured seed 1 (600 s, docs/FAST.md "The late fall"): the per-step 0.995 run fell 2 dB
 over its last 150 s; with 0.9975 (the all_on averaging time at its step rate) it did not.
+With ``h = 22 s`` for both variants (bench/RESULTS.md, v14) no adaptive run fell late, but the
+adaptive-vs-all_on time savings were no better than with the per-step 0.995, so the `fast` preset
+keeps 0.995 and the half-life is an option (``TrainConfig.ema_half_life_s``).
 
 Why: at the end of a `fast` run the held-out PBR PSNR of the live weights swings by up to
 ~1.2 dB between evaluations 30 s apart (bench/RESULTS.md), at a learning rate already on its
