@@ -233,8 +233,11 @@ class Adaptivity:
         (occupancy rule (1)), so its opacity is ``<= ~e^{-k_s}`` and rendering it spends
         ``n_samples + n_importance`` SDF queries (with gradients) on empty space; the share kept
         lets the mask loss and the eikonal term still see empty space; the kept misses get the
-        importance weight ``RayBatch.weight = 1 / miss_keep`` in the mask loss, so its expectation
-        is the mean over the drawn batch (hits weigh 1). ``rays`` (``R``) ->
+        importance weight ``RayBatch.weight = 1 / miss_keep`` in the mask loss and in the eikonal
+        mean (every eikonal sample of a kept miss counts ``1 / miss_keep`` times), so their
+        expectations are the means over the drawn batch (hits weigh 1). Before the eikonal was
+        weighted, thinning made it a near-surface term: the random eikonal samples of the left-out
+        misses were gone, so the near-surface samples weighed more in the mean. ``rays`` (``R``) ->
         the kept :class:`~nepf_core.rays.RayBatch` (``R' <= R``, unchanged order). Only with
         adaptivity on, an occupancy grid that has been refreshed, the ``neus`` sampler (which
         spreads a kept ray's samples over its whole chord, so a surface outside the occupied

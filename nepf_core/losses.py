@@ -6,7 +6,7 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_surf  = lambda1 * mean (1 - w_max) | srgb(L_surf) - srgb(sg(L_r)) |     (paper; sg = stop-grad)
               (ablation: supervise by L_gt instead of L_r)
     L_vol   = lambda2 * mean | srgb(L_vol) - srgb(L_gt) |
-    L_eik   = w_eik * mean | |grad f| - 1 |
+    L_eik   = w_eik * mean_q | |grad f| - 1 |      (q: the sample's ray weight, 1 unless thinned)
     L_hess  = w_hess * mean sum_i |H_ii f|
     L_light = w_light * (l3 |var x - var I| + l4 |var n - var l| + l5 |var x - var l|)
     L_asm   = w_albedo_smooth * mean | c(x*) - c(x* + eps) |   (albedo smoothness prior, off in paper)
@@ -112,6 +112,16 @@ def light_variance_loss(x: Tensor, n: Tensor, l: Tensor, I: Tensor, l3: float, l
     return l3 * (vx - vI).abs() + l4 * (vn - vl).abs() + l5 * (vx - vl).abs()
 
 
+def weighted_mean(x: Tensor, weight: Tensor | None) -> Tensor:
+    """``sum_i q_i x_i / sum_i q_i`` over ``[P]`` values with importance weights ``q [P]``
+    (plain mean when ``weight`` is None). With the ray weights of a thinned batch (each kept
+    miss stands for ``1 / miss_keep`` drawn misses) this is the mean over the drawn batch in
+    expectation, as for the mask loss."""
+    if weight is None:
+        return x.mean()
+    return (x * weight).sum() / weight.sum().clamp_min(1e-12)
+
+
 def mask_bce(weight_sum: Tensor, mask: Tensor, ray_weight: Tensor | None = None) -> Tensor:
     """``BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)``, finite for any weight sum: ``[R], [R] -> []``.
 
@@ -141,7 +151,8 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
     else:
         L["loss_surf"] = zero
     L["loss_vol"] = l1_masked(enc(out.rgb_vol), gt, fg) if cfg.lambda2_vol > 0 else zero
-    L["loss_eik"] = out.eikonal.mean() if (cfg.w_eikonal > 0 and out.eikonal.numel()) else zero
+    L["loss_eik"] = (weighted_mean(out.eikonal, getattr(out, "eikonal_weight", None))
+                     if (cfg.w_eikonal > 0 and out.eikonal.numel()) else zero)
     L["loss_hess"] = out.hessian.mean() if (cfg.w_hessian > 0 and out.hessian.numel()) else zero
     if cfg.w_light > 0:
         keep = surf_rays > 0.5

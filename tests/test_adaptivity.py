@@ -552,6 +552,35 @@ def test_kept_misses_carry_importance_weights_and_the_mask_loss_stays_unbiased()
     assert float(mask_bce(w, m)) == pytest.approx((math.log(2) - math.log(0.9)) / 2, rel=1e-5)
 
 
+def test_eikonal_mean_weighs_each_sample_by_its_rays_importance_weight():
+    """A ray kept with weight 3 counts like three copies of it, in the eikonal mean as in the
+    mask loss, so thinning a batch does not turn the eikonal into a near-surface term."""
+    from nepf_core.losses import compute_losses, weighted_mean
+    from nepf_core.rays import RayBatch
+    from nepf_core.render.renderer import render_rays
+    assert float(weighted_mean(torch.tensor([1.0, 2.0, 3.0]), torch.tensor([1.0, 1.0, 2.0]))) == pytest.approx(2.25)
+    assert float(weighted_mean(torch.tensor([1.0, 2.0, 3.0]), None)) == pytest.approx(2.0)
+    cfg, model, rays = _sphere_model_and_rays(n_hit=3, n_miss=3)
+    with torch.no_grad():   # an SDF that is not eikonal-exact, so the residual is not 0
+        for p in model.sdf.parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(3)))
+    cfg.render.perturb = False
+    cfg.render.eikonal_fraction = 0.0   # deterministic sample set: head samples only
+    cfg.render.n_samples, cfg.render.n_importance = 48, 0
+    reps = torch.tensor([1, 2, 1, 3, 1, 2])
+    dup = rays.index(torch.repeat_interleave(torch.arange(6), reps))
+    weighted = rays.index(torch.arange(6))
+    weighted.weight = reps.float()
+    def losses(batch):
+        L = compute_losses(render_rays(model, batch, cfg.render, train=True), batch, cfg.loss, use_mask=True)
+        return {k: float(v.detach()) for k, v in L.items()}
+    lw, ld, lu = losses(weighted), losses(dup), losses(rays.index(torch.arange(6)))
+    assert ld["loss_eik"] > 1e-3
+    assert lw["loss_eik"] == pytest.approx(ld["loss_eik"], rel=1e-4)
+    assert lw["loss_mask"] == pytest.approx(ld["loss_mask"], rel=1e-4)
+    assert abs(lu["loss_eik"] - ld["loss_eik"]) > 1e-4   # the weights matter here
+
+
 def test_fit_stops_at_a_plateau_after_annealing_the_learning_rate(tmp_path, monkeypatch):
     """End to end through ``fit``: a held-out PSNR that never improves (the evaluation is
     replaced by a constant, so the plateau is certain) fires the plateau rule, the learning

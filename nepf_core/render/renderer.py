@@ -137,6 +137,10 @@ class RenderOutput:
     occupied_length: float | None = None
     """Occupancy sampler only: mean over the rays that meet an occupied cell of the length of
     ``[near, far]`` inside occupied cells, ``(1 - skip) (far - near)`` (normalised units)."""
+    eikonal_weight: Tensor | None = None
+    """``[P]``: the importance weight ``RayBatch.weight`` of the ray each ``eikonal`` sample
+    lies on (None when the batch has no weights): the eikonal mean is then weighted like the
+    mask loss, so a batch thinned by :meth:`Adaptivity.thin_empty_rays` keeps its expectation."""
 
 
 def _shade_points(model, cfg: RenderConfig, xs: Tensor, vs: Tensor, ns: Tensor, fs: Tensor,
@@ -227,7 +231,9 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         g_sub, _ = sdf_gradient_fd(sdf_only, pts[gidx], model.sdf.fd_step(), scheme="tetra", center="mean")
         grad = pts.new_zeros(pts.shape[0], 3).index_copy(0, gidx, g_sub)
         gnorm_sub = g_sub.norm(dim=-1)
-        eikonal = (gnorm_sub - 1.0).abs()[pts[gidx].norm(dim=-1) < 1.0]
+        inside_sub = pts[gidx].norm(dim=-1) < 1.0
+        eikonal = (gnorm_sub - 1.0).abs()[inside_sub]
+        eik_ray = torch.div(gidx, S, rounding_mode="floor")[inside_sub]
         gnorm = grad.norm(dim=-1)
     else:
         mid = z + dists * 0.5
@@ -254,7 +260,9 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         inside = pts.norm(dim=-1) < 1.0
         gnorm = grad.norm(dim=-1)
         eikonal = (gnorm - 1.0).abs()[inside]
+        eik_ray = torch.div(torch.arange(pts.shape[0], device=o.device), S, rounding_mode="floor")[inside]
     weight_sum = weights.sum(-1)
+    eik_w = None if getattr(rays, "weight", None) is None else rays.weight[eik_ray].to(eikonal.dtype)
 
     normals = grad / gnorm.clamp_min(1e-8)[:, None]
     w_flat = weights.reshape(-1)
@@ -324,4 +332,4 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     return RenderOutput(rgb_r=rgb_r, rgb_vol=rgb_vol, rgb_surf=rgb_surf, weight_sum=weight_sum, w_max=w_max,
                         depth=depth, eikonal=eikonal, hessian=hess, surf=surf, n_samples=int(P),
                         n_head_evals=int(sel_idx.shape[0]), inv_s=float(inv_s.detach()), skip_fraction=skip,
-                        occupied_length=occ_len)
+                        occupied_length=occ_len, eikonal_weight=eik_w)
