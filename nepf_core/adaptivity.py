@@ -238,8 +238,8 @@ class Adaptivity:
         expectations are the means over the drawn batch (hits weigh 1). Before the eikonal was
         weighted, thinning made it a near-surface term: measured on a trained spot_textured model
         (docs/FAST.md), rays that meet an occupied cell held 55 % of the eikonal mean of a full
-        drawn batch, 92 % of a thinned one unweighted, 55 % weighted (`bench/eikonal_share.py`). ``rays`` (``R``) ->
-        the kept :class:`~nepf_core.rays.RayBatch` (``R' <= R``, unchanged order). Only with
+        drawn batch, 92 % of a thinned one unweighted, 55 % weighted (``bench/eikonal_share.py``).
+        ``rays`` (``R``) -> the kept :class:`~nepf_core.rays.RayBatch` (``R' <= R``, unchanged order). Only with
         adaptivity on, an occupancy grid that has been refreshed, the ``neus`` sampler (which
         spreads a kept ray's samples over its whole chord, so a surface outside the occupied
         cells is still found and then makes its cells occupied), and at least 8 rays kept.
