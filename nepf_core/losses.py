@@ -127,9 +127,7 @@ def mask_bce(weight_sum: Tensor, mask: Tensor, ray_weight: Tensor | None = None)
 
     With ``ray_weight`` ``[R]`` (importance weights ``q_r``): ``sum_r q_r BCE_r / sum_r q_r``."""
     bce = F.binary_cross_entropy(weight_sum.clip(1e-3, 1.0 - 1e-3), mask, reduction="none")
-    if ray_weight is None:
-        return bce.mean()
-    return (bce * ray_weight).sum() / ray_weight.sum().clamp_min(1e-12)
+    return weighted_mean(bce, ray_weight)
 
 
 def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, specular: bool = True) -> dict[str, Tensor]:
@@ -151,7 +149,7 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
     else:
         L["loss_surf"] = zero
     L["loss_vol"] = l1_masked(enc(out.rgb_vol), gt, fg) if cfg.lambda2_vol > 0 else zero
-    L["loss_eik"] = (weighted_mean(out.eikonal, getattr(out, "eikonal_weight", None))
+    L["loss_eik"] = (weighted_mean(out.eikonal, out.eikonal_weight)
                      if (cfg.w_eikonal > 0 and out.eikonal.numel()) else zero)
     L["loss_hess"] = out.hessian.mean() if (cfg.w_hessian > 0 and out.hessian.numel()) else zero
     if cfg.w_light > 0:

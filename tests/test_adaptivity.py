@@ -556,7 +556,6 @@ def test_eikonal_mean_weighs_each_sample_by_its_rays_importance_weight():
     """A ray kept with weight 3 counts like three copies of it, in the eikonal mean as in the
     mask loss, so thinning a batch does not turn the eikonal into a near-surface term."""
     from nepf_core.losses import compute_losses, weighted_mean
-    from nepf_core.rays import RayBatch
     from nepf_core.render.renderer import render_rays
     assert float(weighted_mean(torch.tensor([1.0, 2.0, 3.0]), torch.tensor([1.0, 1.0, 2.0]))) == pytest.approx(2.25)
     assert float(weighted_mean(torch.tensor([1.0, 2.0, 3.0]), None)) == pytest.approx(2.0)

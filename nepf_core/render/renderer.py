@@ -262,7 +262,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         eikonal = (gnorm - 1.0).abs()[inside]
         eik_ray = torch.div(torch.arange(pts.shape[0], device=o.device), S, rounding_mode="floor")[inside]
     weight_sum = weights.sum(-1)
-    eik_w = None if getattr(rays, "weight", None) is None else rays.weight[eik_ray].to(eikonal.dtype)
+    eik_w = None if rays.weight is None else rays.weight[eik_ray].to(eikonal.dtype)
 
     normals = grad / gnorm.clamp_min(1e-8)[:, None]
     w_flat = weights.reshape(-1)
