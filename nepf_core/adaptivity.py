@@ -16,8 +16,8 @@ Rules (each decision is logged with its step and reason):
   fade of ``lobe_fade_steps`` over which lobe and metallic dimmer go linearly (the image is the
   same at the drop), and the albedo flatness prior (``LossConfig.w_albedo_flat``) applies: without
   the lobe only the product of albedo and light intensity is seen (docs/FAST.md, "What fixed it").
-  While it is off it comes back if
-  the spread exceeds ``2 view_spread_thr``, or if the L_vol residual on the brightest 5 % of
+  While it is off it comes back after ``patience`` checks in a row at which
+  the spread exceeds ``2 view_spread_thr``, or the L_vol residual on the brightest 5 % of
   pixels exceeds ``highlight_ratio`` times the median residual while the spread is not flat.
   The spread counts only lit pixels' points, and only while the radiance explains them
   (relative L1 error <= ``radiance_fit_max``): torus_stiff, a near-mirror under a grazing light
@@ -112,6 +112,8 @@ class Adaptivity:
         self.stop_requested = False
         self._cool_start = self._cool_len = self._cool_f0 = None
         self._diffuse_streak = 0
+        self._return_streak = 0
+        self._highlight_vote = None   # (step, reason) of the last check whose residual asked for the lobe
         self._eik_ema = None
         self._best_psnr = -math.inf
         self._evals_since_best = 0
@@ -150,7 +152,7 @@ class Adaptivity:
                 "drop_sum": self._drop_sum, "drop_n": self._drop_n, "view_spread": self._view_spread,
                 "fade_start": self._fade_start, "diffuse_metal_weight": self.cfg.render.diffuse_metal_weight,
                 "metallic_scale": self.cfg.render.metallic_scale, "metal_fade": self._metal_fade,
-                "metal_streak": self._metal_streak}
+                "metal_streak": self._metal_streak, "return_streak": self._return_streak}
 
     def load_state(self, s: dict) -> None:
         if not s:
@@ -176,6 +178,7 @@ class Adaptivity:
         self.cfg.render.n_samples_occupied = s.get("n_samples_occupied", self.cfg.render.n_samples_occupied)
         self.cfg.render.metallic_scale = s.get("metallic_scale", self.cfg.render.metallic_scale)
         self._metal_fade = s.get("metal_fade")
+        self._return_streak = s.get("return_streak", 0)
         self._metal_streak = s.get("metal_streak", 0)
 
     # -- before training --
@@ -388,11 +391,27 @@ class Adaptivity:
                                    "the surface is a dielectric diffuse f_d(c) (the asset carries the shaded material, metallic 0)")
             else:
                 self._diffuse_streak = 0
-        elif spread is not None and spread > 2 * self.view_spread_thr:
-            self._set_lobe(True, step, f"the learned radiance now changes by {spread:.2%} across the training "
-                           f"cameras (> {2 * self.view_spread_thr:.1%})")
+        else:
+            self._count_return_vote(step, spread, share)
+
+    def _count_return_vote(self, step: int, spread: float | None, share: float) -> None:
+        """While the lobe is off, one check votes for its return when the radiance's spread
+        exceeds ``2 view_spread_thr``, when no spread is measured and the lobe's share would
+        exceed ``2 spec_thr``, or when :meth:`on_highlight_residual` flagged this check. The
+        lobe comes back after ``patience`` votes in a row, as it went: a return on a single vote
+        made sphere_diffuse seed 0 flap in four rounds of bench/RESULTS.md (dropped, back
+        200-300 steps later, dropped again), each flap costing a fade and a restarted average."""
+        why = None
+        if spread is not None and spread > 2 * self.view_spread_thr:
+            why = (f"the learned radiance now changes by {spread:.2%} across the training cameras "
+                   f"(> {2 * self.view_spread_thr:.1%})")
         elif spread is None and share > 2 * self.spec_thr:
-            self._set_lobe(True, step, f"specular share would be {share:.3%} > {2 * self.spec_thr:.0%}")
+            why = f"specular share would be {share:.3%} > {2 * self.spec_thr:.0%}"
+        elif self._highlight_vote is not None and self._highlight_vote[0] == step:
+            why = self._highlight_vote[1]
+        self._return_streak = self._return_streak + 1 if why else 0
+        if why and self._return_streak >= self.patience:
+            self._set_lobe(True, step, f"{why} ({self.patience} checks in a row)")
 
     def _decide_dielectric(self, step: int, spread: float | None) -> None:
         """The metallic rule (module docstring): from this check's highlight colour
@@ -469,7 +488,7 @@ class Adaptivity:
         While it is off, the albedo flatness prior (``LossConfig.w_albedo_flat``) applies."""
         r = self.cfg.render
         r.specular = on
-        self._diffuse_streak = 0
+        self._diffuse_streak = self._return_streak = 0
         self.record("specular_lobe", on, reason, step)
         if not on:
             r.diffuse_metal_weight = 1.0   # same image at the drop, then fades
@@ -549,13 +568,14 @@ class Adaptivity:
             self._lobe_gain = gain
 
     def on_highlight_residual(self, step: int, ratio: float) -> None:
-        """Bring the lobe back when the brightest pixels' L_vol residual is ``highlight_ratio``
-        times the median, unless the learned radiance says the scene is still view-independent
-        (a diffuse fit's residual grows with brightness too)."""
+        """Vote for the lobe's return at this check (counted by :meth:`on_step`, which brings it
+        back after ``patience`` votes in a row) when the brightest pixels' L_vol residual is
+        ``highlight_ratio`` times the median, unless the learned radiance says the scene is
+        still view-independent (a diffuse fit's residual grows with brightness too)."""
         if self._view_spread is not None and self._view_spread < self.view_spread_thr:
             return
         if self.enabled and not self.cfg.render.specular and ratio > self.highlight_ratio:
-            self._set_lobe(True, step, f"L_vol residual on the brightest 5% pixels is {ratio:.1f}x the median")
+            self._highlight_vote = (step, f"L_vol residual on the brightest 5% pixels is {ratio:.1f}x the median")
 
     def plateau_min_progress(self) -> float:
         """Training progress before which no plateau counts: a grid SDF still gains resolution

@@ -97,41 +97,73 @@ def _dropped():
     return a, cfg
 
 
-def test_specular_reenabled_when_share_would_be_large():
+def test_specular_reenabled_when_share_would_be_large_for_patience_checks():
     a, cfg = _dropped()
-    a.on_step(400, _out(share=0.03), _losses())  # above spec_thr but below 2 spec_thr: stays off
-    assert not cfg.render.specular
-    a.on_step(500, _out(share=0.2), _losses())
+    a.on_step(400, _out(share=0.03), _losses())  # above spec_thr but below 2 spec_thr: no vote
+    assert not cfg.render.specular and a._return_streak == 0
+    a.on_step(500, _out(share=0.2), _losses())   # one vote ...
+    a.on_step(600, _out(share=0.01), _losses())  # ... broken by a check that does not vote
+    assert not cfg.render.specular and a._return_streak == 0
+    steps = [700 + 100 * k for k in range(a.patience)]
+    for k, step in enumerate(steps):
+        assert not cfg.render.specular          # not before the patience-th vote in a row
+        a.on_step(step, _out(share=0.2), _losses())
+        assert a._return_streak == (0 if k == a.patience - 1 else k + 1)
     assert cfg.render.specular
     d = _names(a, "specular_lobe")[-1]
-    assert d["value"] is True and d["step"] == 500 and "share" in d["reason"]
+    assert d["value"] is True and d["step"] == steps[-1] and "share" in d["reason"]
     assert a._diffuse_streak == 0
+
+
+def test_lobe_return_streak_survives_a_checkpoint_resume():
+    a, cfg = _dropped()
+    a.on_step(400, _out(share=0.2), _losses())
+    b, cfg_b = _adapt()
+    b.load_state(json.loads(json.dumps(a.state())))
+    assert not cfg_b.render.specular and b._return_streak == 1
+    for step in range(500, 400 + 100 * a.patience, 100):
+        b.on_step(step, _out(share=0.2), _losses())
+    assert cfg_b.render.specular
 
 
 def test_albedo_flatness_prior_is_recorded_on_exactly_while_the_lobe_is_off():
     a, cfg = _dropped()
-    a.on_step(400, _out(share=0.2), _losses())
-    assert cfg.loss.w_albedo_flat == 0 and not _names(a, "albedo_flatness_prior")   # tiny has none
+    for k in range(a.patience):
+        a.on_step(400 + 100 * k, _out(share=0.2), _losses())
+    assert cfg.render.specular and cfg.loss.w_albedo_flat == 0 and not _names(a, "albedo_flatness_prior")   # tiny has none
     b, cfg_b = _adapt()
     cfg_b.loss.w_albedo_flat = 3e-5
     for step in (100, 200, 300):
         b.on_step(step, _out(share=0.0), _losses())
-    b.on_step(400, _out(share=0.2), _losses())
-    assert [(d["value"], d["step"]) for d in _names(b, "albedo_flatness_prior")] == [(True, 300), (False, 400)]
+    back = 400 + 100 * (b.patience - 1)
+    for step in range(400, back + 1, 100):
+        b.on_step(step, _out(share=0.2), _losses())
+    assert [(d["value"], d["step"]) for d in _names(b, "albedo_flatness_prior")] == [(True, 300), (False, back)]
 
 
-def test_specular_reenabled_by_highlight_residual():
+def test_specular_reenabled_by_highlight_residual_for_patience_checks():
     a, cfg = _dropped()
-    a.on_highlight_residual(400, 2.0)  # below highlight_ratio = 3
-    assert not cfg.render.specular
-    a.on_highlight_residual(500, 7.5)
+    a.on_highlight_residual(400, 2.0)  # below highlight_ratio = 3: no vote
+    a.on_step(400, _out(share=0.0), _losses())
+    assert not cfg.render.specular and a._return_streak == 0
+    steps = [500 + 100 * k for k in range(a.patience)]
+    for step in steps:
+        a.on_highlight_residual(step, 7.5)
+        a.on_step(step, _out(share=0.0), _losses())
     assert cfg.render.specular
     d = _names(a, "specular_lobe")[-1]
-    assert d["value"] is True and d["step"] == 500 and "brightest" in d["reason"]
+    assert d["value"] is True and d["step"] == steps[-1] and "brightest" in d["reason"]
+    # a vote counts only at its own check: a later check without one breaks the streak
+    b, cfg_b = _dropped()
+    b.on_highlight_residual(400, 7.5)
+    b.on_step(400, _out(share=0.0), _losses())
+    b.on_step(500, _out(share=0.0), _losses())
+    assert b._return_streak == 0
     # while the lobe is on, a residual changes nothing
     n = len(a.decisions)
-    a.on_highlight_residual(600, 9.0)
-    assert len(a.decisions) == n
+    a.on_highlight_residual(900, 9.0)
+    a.on_step(900, _out(share=0.2), _losses())
+    assert len(a.decisions) == n and cfg.render.specular
 
 
 def test_disabled_adaptivity_keeps_every_term():
@@ -664,11 +696,13 @@ def test_lobe_returns_when_the_radiance_becomes_view_dependent():
     for step in (100, 200, 300):
         a.on_step(step, _out(share=0.3, metallic=0.5), _losses())
     assert not cfg.render.specular
-    a._view_spread = 0.03   # between thr and 2 thr: hysteresis, stays off
+    a._view_spread = 0.03   # between thr and 2 thr: hysteresis, no vote
     a.on_step(400, _out(share=0.3, metallic=0.5), _losses())
-    assert not cfg.render.specular
+    assert not cfg.render.specular and a._return_streak == 0
     a._view_spread = 0.06
-    a.on_step(500, _out(share=0.3, metallic=0.5), _losses())
+    for k in range(a.patience):
+        assert not cfg.render.specular
+        a.on_step(500 + 100 * k, _out(share=0.3, metallic=0.5), _losses())
     assert cfg.render.specular
     assert [d["value"] for d in _names(a, "specular_lobe")] == [False, True]
 
@@ -678,10 +712,14 @@ def test_highlight_residual_cannot_bring_the_lobe_back_while_the_radiance_is_fla
     a._view_spread = 0.01
     for step in (100, 200, 300):
         a.on_step(step, _out(share=0.3, metallic=0.5), _losses())
-    a.on_highlight_residual(350, 10.0)
-    assert not cfg.render.specular
+    for step in (400, 500, 600):
+        a.on_highlight_residual(step, 10.0)
+        a.on_step(step, _out(share=0.3, metallic=0.5), _losses())
+    assert not cfg.render.specular and a._return_streak == 0
     a._view_spread = 0.03
-    a.on_highlight_residual(360, 10.0)
+    for step in (700, 800, 900):
+        a.on_highlight_residual(step, 10.0)
+        a.on_step(step, _out(share=0.3, metallic=0.5), _losses())
     assert cfg.render.specular
 
 
