@@ -25,6 +25,11 @@ Definitions (also written into ``table.md``):
   from the third evaluation on. final = the mean of the last three evaluations; time = first
   evaluation at which the running mean reaches the target. One evaluation of spot_textured moves
   by 0.5-1 dB (docs/FAST.md), so a single evaluation decides a raw first crossing.
+* **saved over levels** (per pair, smoothed): the time saved at every whole-dB level both smoothed
+  curves climb to (from the first whole dB above both curves' first points up to the lower
+  smoothed final, which is the last level): the median over levels, and how many levels saved
+  >= 30 % (levels one run never reaches are left out). The single "time to the lower final"
+  rewards a baseline that plateaus early and low; this shows whether the saving holds all the way up.
 * With ``--repeats N`` > 1 every number is the median over repeats (pairs are matched by
   repeat index).
 """
@@ -92,6 +97,31 @@ def time_to_reach_smoothed(rec: dict, target: float | None, window: int = SMOOTH
         if v >= target - 1e-9:
             return t
     return None
+
+
+def level_savings(a: dict, b: dict, step_db: float = 1.0, window: int = SMOOTH_WINDOW) -> list[dict]:
+    """Time saved by run ``a`` over run ``b`` at every shared PSNR level of their smoothed curves.
+
+    Levels ``P_k = P_0 + k step_db`` (``P_0`` the first whole dB above both curves' first
+    smoothed values, so neither is credited with a level it started above) up to the lower
+    smoothed final ``P_f``, and ``P_f`` itself; per level ``{"level", "t_a", "t_b", "saved_pct"}``
+    with ``t`` = :func:`time_to_reach_smoothed` and saved = ``100 (t_b - t_a) / t_b``. Why: the
+    single "time to the lower final" rewards a baseline that plateaus early and low (a run that
+    climbs past it later counts as slower even when it is ahead at every other level)."""
+    sa, sb = smoothed_curve(a, window), smoothed_curve(b, window)
+    if not sa or not sb:
+        return []
+    final = min(sa[-1][1], sb[-1][1])
+    start = math.floor(max(sa[0][1], sb[0][1])) + step_db
+    levels = []
+    while start + len(levels) * step_db < final - 1e-9:
+        levels.append(start + len(levels) * step_db)
+    levels.append(final)
+    out = []
+    for lv in levels:
+        ta, tb = time_to_reach_smoothed(a, lv, window), time_to_reach_smoothed(b, lv, window)
+        out.append({"level": lv, "t_a": ta, "t_b": tb, "saved_pct": _saved_pct(ta, tb)})
+    return out
 
 
 def chamfer_of(rec: dict) -> tuple[float | None, bool]:
@@ -260,6 +290,9 @@ def summarize(results: dict, target_psnr: float | None = None) -> dict:
                             "smooth_t_adaptive": sta, "smooth_t_all_on": stb, "smooth_saved_pct": _saved_pct(sta, stb),
                             "smooth_t_adaptive_tol": sto_a, "smooth_t_all_on_tol": sto_b,
                             "smooth_tol_saved_pct": _saved_pct(sto_a, sto_b)})
+            lv = [x["saved_pct"] for x in level_savings(a, b) if x["saved_pct"] is not None]
+            per[-1].update({"levels_n": len(lv), "levels_saved_median_pct": _median(lv) if lv else None,
+                            "levels_saved_30_n": sum(v >= 30.0 for v in lv)})
         row = {"scene": scene, "config": config, "baseline": baseline, "n": len(per), "per_repeat": per}
         for k in ("target", "final_adaptive", "final_all_on", "diff", "t_adaptive", "t_all_on", "saved_pct",
                   "s_per_step_adaptive", "s_per_step_all_on", "chamfer_adaptive", "chamfer_all_on",
@@ -404,15 +437,17 @@ def write_table(results: dict, summary: dict, path: Path) -> None:
               "3 reaches the lower smoothed final, or (within 0.3 dB) the baseline's smoothed final minus 0.3 dB "
               "for the adaptive run against the baseline's smoothed final for the baseline.", "",
               "| scene | baseline | seed | final adaptive / baseline (dB) | diff | t to lower final adaptive / "
-              "baseline (s) | saved | t within 0.3 dB adaptive / baseline (s) | saved within 0.3 dB |",
-              "|---|---|---|---|---|---|---|---|---|"]
+              "baseline (s) | saved | t within 0.3 dB adaptive / baseline (s) | saved within 0.3 dB | "
+              "saved over levels: median (levels >= 30 % / levels) |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
         for x in summary["adaptive_vs_all_on"]:
             for p in x["per_repeat"]:
                 L.append(f"| {x['scene']} | {x['baseline']} | {p['seed']} | {_fmt(p['smooth_final_adaptive'])} / "
                          f"{_fmt(p['smooth_final_all_on'])} | {_fmt(p['smooth_diff'])} | "
                          f"{_fmt_t(p['smooth_t_adaptive'])} / {_fmt_t(p['smooth_t_all_on'])} | "
                          f"{_fmt(p['smooth_saved_pct'], 0)}% | {_fmt_t(p['smooth_t_adaptive_tol'])} / "
-                         f"{_fmt_t(p['smooth_t_all_on_tol'])} | {_fmt(p['smooth_tol_saved_pct'], 0)}% |")
+                         f"{_fmt_t(p['smooth_t_all_on_tol'])} | {_fmt(p['smooth_tol_saved_pct'], 0)}% | "
+                         f"{_fmt(p['levels_saved_median_pct'], 0)}% ({p['levels_saved_30_n']} / {p['levels_n']}) |")
         L.append("")
     real = [r for r in results.get("runs", []) if r.get("mode") == "real"]
     if real:

@@ -272,5 +272,24 @@ def test_smoothed_pair_comparison_uses_running_means_of_three(tmp_path):
     assert p["smooth_saved_pct"] == pytest.approx(20.0)
     assert p["smooth_t_adaptive_tol"] is None and p["smooth_t_all_on_tol"] == 500 and p["smooth_tol_saved_pct"] is None
     write_table({"runs": [a, b]}, summarize({"runs": [a, b]}), tmp_path / "t.md")
-    assert "| s | all_on | 0 | 24.00 / 24.77 | -0.77 | 400 / 500 | 20% | not reached / 500 | n/a% |" in \
+    # levels: first smoothed points 23.0 / 22.333 -> from 24 dB; the lower final 24.0 is the only level
+    assert p["levels_n"] == 1 and p["levels_saved_median_pct"] == pytest.approx(20.0) and p["levels_saved_30_n"] == 0
+    assert "| s | all_on | 0 | 24.00 / 24.77 | -0.77 | 400 / 500 | 20% | not reached / 500 | n/a% | 20% (0 / 1) |" in \
         (tmp_path / "t.md").read_text()
+
+
+def test_level_savings_at_every_shared_whole_db_level_up_to_the_lower_final():
+    """Baseline: 30, 36, 37, 37, 37, 37 at 30..180 s (smoothed 34.333 @90, 36.667 @120, 37 from 150);
+    adaptive: 30, 31, 32, 36, 39, 33 (a dip), 40, 41 (smoothed 31 @90, 33 @120, 35.667 @150,
+    36 @180, 37.333 @210, 38 @240). Levels from floor(34.333) + 1 = 35 dB to the lower final 37:
+    35 -> 150 / 120 s (-25 %), 36 -> 180 / 120 s (-50 %), 37 -> 210 / 150 s (-40 %)."""
+    from bench.report import level_savings
+    b = _rec("s", "fast", "all_on", [(30 * k, v) for k, v in enumerate((30, 36, 37, 37, 37, 37), 1)])
+    a = _rec("s", "fast", "adaptive", [(30 * k, v) for k, v in enumerate((30, 31, 32, 36, 39, 33, 40, 41), 1)])
+    lv = level_savings(a, b)
+    assert [x["level"] for x in lv] == pytest.approx([35.0, 36.0, 37.0])
+    assert [(x["t_a"], x["t_b"]) for x in lv] == [(150.0, 120.0), (180.0, 120.0), (210.0, 150.0)]
+    assert [x["saved_pct"] for x in lv] == pytest.approx([-25.0, -50.0, -40.0])
+    # swapped roles: the same levels, the opposite sign of the time difference
+    assert [x["saved_pct"] for x in level_savings(b, a)] == pytest.approx([20.0, 100 / 3, 200 / 7])
+    assert level_savings(a, _rec("s", "fast", "all_on", [(30, 30.0)])) == []
