@@ -18,7 +18,8 @@ Rules (each decision is logged with its step and reason):
   the lobe only the product of albedo and light intensity is seen (docs/FAST.md, "What fixed it").
   While it is off it comes back after ``patience`` checks in a row at which
   the spread exceeds ``2 view_spread_thr``, or the L_vol residual on the brightest 5 % of
-  pixels exceeds ``highlight_ratio`` times the median residual while the spread is not flat.
+  pixels exceeds ``highlight_ratio`` times the median residual while the spread is not flat
+  (the running count is logged as ``lobe_return_votes`` while the lobe is off).
   The spread counts only lit pixels' points, and only while the radiance explains them
   (relative L1 error <= ``radiance_fit_max``): torus_stiff, a near-mirror under a grazing light
   with 98 % of its foreground unlit, read 0.44-0.94 % at metallic 1.0 and lost its lobe before
@@ -329,6 +330,8 @@ class Adaptivity:
             s["occupied_length"] = self._occ_len
         if self._drop_last is not None:
             s["rays_left_out"] = self._drop_last
+        if self.enabled and not self.cfg.render.specular:
+            s["lobe_return_votes"] = self._return_streak   # checks in a row that asked for the lobe back
         return s
 
     def on_step(self, step: int, out, losses: dict) -> None:

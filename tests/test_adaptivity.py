@@ -109,7 +109,9 @@ def test_specular_reenabled_when_share_would_be_large_for_patience_checks():
         assert not cfg.render.specular          # not before the patience-th vote in a row
         a.on_step(step, _out(share=0.2), _losses())
         assert a._return_streak == (0 if k == a.patience - 1 else k + 1)
-    assert cfg.render.specular
+        if k < a.patience - 1:
+            assert a.step_stats()["lobe_return_votes"] == k + 1   # logged while the lobe is off
+    assert cfg.render.specular and "lobe_return_votes" not in a.step_stats()
     d = _names(a, "specular_lobe")[-1]
     assert d["value"] is True and d["step"] == steps[-1] and "share" in d["reason"]
     assert a._diffuse_streak == 0
