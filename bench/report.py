@@ -91,12 +91,14 @@ def smoothed_curve(rec: dict, window: int = SMOOTH_WINDOW) -> list[tuple[float, 
 
 def time_to_reach_smoothed(rec: dict, target: float | None, window: int = SMOOTH_WINDOW) -> float | None:
     """First ``wall_s`` at which :func:`smoothed_curve` >= ``target`` (None: not reached)."""
+    return _first_reach(smoothed_curve(rec, window), target)
+
+
+def _first_reach(curve: list[tuple[float, float]], target: float | None) -> float | None:
+    """First ``t`` of ``[(t, value)]`` with ``value >= target`` (None: not reached or no target)."""
     if target is None or not _finite(target):
         return None
-    for t, v in smoothed_curve(rec, window):
-        if v >= target - 1e-9:
-            return t
-    return None
+    return next((t for t, v in curve if v >= target - 1e-9), None)
 
 
 def level_savings(a: dict, b: dict, step_db: float = 1.0, window: int = SMOOTH_WINDOW) -> list[dict]:
@@ -113,13 +115,11 @@ def level_savings(a: dict, b: dict, step_db: float = 1.0, window: int = SMOOTH_W
         return []
     final = min(sa[-1][1], sb[-1][1])
     start = math.floor(max(sa[0][1], sb[0][1])) + step_db
-    levels = []
-    while start + len(levels) * step_db < final - 1e-9:
-        levels.append(start + len(levels) * step_db)
-    levels.append(final)
+    n_whole = max(math.ceil((final - 1e-9 - start) / step_db), 0)
+    levels = [start + k * step_db for k in range(n_whole)] + [final]
     out = []
     for lv in levels:
-        ta, tb = time_to_reach_smoothed(a, lv, window), time_to_reach_smoothed(b, lv, window)
+        ta, tb = _first_reach(sa, lv), _first_reach(sb, lv)
         out.append({"level": lv, "t_a": ta, "t_b": tb, "saved_pct": _saved_pct(ta, tb)})
     return out
 
