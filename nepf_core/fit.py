@@ -82,12 +82,18 @@ def lr_factor(progress_warm: float, progress: float, alpha: float) -> float:
 
 
 class MetricsLog:
-    """Append-only ``metrics.jsonl`` (one JSON object per line, flushed per record)."""
+    """Append-only ``metrics.jsonl`` (one JSON object per line, flushed per record).
+
+    A run killed mid-write can leave a partial last line; on resume it is closed with a newline,
+    so the first new record starts a line of its own instead of being glued to the broken one.
+    """
 
     def __init__(self, path: Path, callbacks: FitCallbacks) -> None:
         self.path = path
         self.cb = callbacks
         self.f = open(path, "a", encoding="utf-8")
+        if path.stat().st_size and not _ends_with_newline(path):
+            self.f.write("\n")
 
     def write(self, rec: dict) -> None:
         clean = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in rec.items()}
@@ -97,6 +103,12 @@ class MetricsLog:
 
     def close(self) -> None:
         self.f.close()
+
+
+def _ends_with_newline(path: Path) -> bool:
+    with open(path, "rb") as f:
+        f.seek(-1, os.SEEK_END)
+        return f.read(1) == b"\n"
 
 
 def _write_json_atomic(path: Path, obj) -> None:

@@ -132,6 +132,14 @@ def _glb_bytes() -> bytes:
     return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
 
 
+def _write_atomic(path: Path, text: str) -> None:
+    """Temp file + rename, as ``nepf_core.checkpoint.save_checkpoint`` does: a ``kill -9`` mid-write
+    must leave the previous checkpoint, never an empty one (CI once killed the fake exactly there)."""
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
 def fake_run_job(data_dir, run_dir, *, preset="fast", iters=None, time_budget_s=None, device="auto",
                  callbacks=None, resume=True, **_kw) -> dict:
     """Stands in for ``nepf_core.jobs.run_job`` in service tests: same contract, no torch.
@@ -163,7 +171,7 @@ def fake_run_job(data_dir, run_dir, *, preset="fast", iters=None, time_budget_s=
         if step % 5 == 0:
             mf.write(json.dumps({"step": step, "wall_s": time.time() - t0, "kind": "sync", "psnr_r": 20 + step / 10,
                                  "psnr_surf": 19 + step / 10, "psnr_vol": 18 + step / 10}) + "\n")
-            ck.write_text(json.dumps({"step": step}))
+            _write_atomic(ck, json.dumps({"step": step}))
         mf.flush()
         if callbacks is not None:
             callbacks.progress({"step": step, "total": total, "fraction": step / total, "stage": "train",
@@ -171,7 +179,7 @@ def fake_run_job(data_dir, run_dir, *, preset="fast", iters=None, time_budget_s=
     mf.write(json.dumps({"step": step, "wall_s": time.time() - t0, "kind": "test", "test_psnr": 21.0,
                          "chamfer": 0.01, "albedo_psnr": 18.0}) + "\n")
     mf.close()
-    ck.write_text(json.dumps({"step": step}))
+    _write_atomic(ck, json.dumps({"step": step}))
     (run / "report.json").write_text(json.dumps({"decisions": [
         {"decision": "ray_batch", "value": 256, "reason": "fake", "step": 0}]}))
     (run / "previews").mkdir(exist_ok=True)
@@ -415,5 +423,10 @@ def check_lifecycle(base: str, h: dict, zbytes: bytes, config: dict, timeout: fl
 def max_metric_step(data_dir: Path, job_id: str) -> int:
     """The last step written to metrics.jsonl (the DB progress lags by up to a heartbeat)."""
     p = Path(data_dir) / "jobs" / job_id / "run" / "metrics.jsonl"
-    steps = [json.loads(x).get("step", 0) for x in p.read_text().splitlines() if x.strip()]
+    steps = []
+    for line in p.read_text().splitlines():
+        try:
+            steps.append(int(json.loads(line).get("step", 0)))
+        except ValueError:   # a line cut by the kill (JSONDecodeError is a ValueError)
+            continue
     return max(steps) if steps else 0

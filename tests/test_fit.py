@@ -110,3 +110,27 @@ def test_time_budget_stops_and_writes_outputs(small_scene, tmp_path):
     assert res.status == "succeeded" and 0 < res.step < 10_000
     assert res.wall_s >= 2.0
     assert (tmp_path / "t" / "checkpoints" / "latest.pt").exists()
+
+
+def test_metrics_log_starts_a_new_line_after_a_line_cut_by_a_kill(tmp_path):
+    """A kill -9 mid-write leaves a partial last line; the resumed log must not glue its first
+    record onto it (that record would be lost to every reader)."""
+    from nepf_core.fit import MetricsLog
+
+    p = tmp_path / "metrics.jsonl"
+    p.write_text('{"step": 1, "loss": 0.5}\n{"step": 2, "lo')
+    seen = []
+    log = MetricsLog(p, FitCallbacks(on_metrics=seen.append))
+    log.write({"step": 3, "loss": 0.25})
+    log.close()
+    lines = p.read_text().splitlines()
+    assert lines[0] == '{"step": 1, "loss": 0.5}' and lines[1] == '{"step": 2, "lo'
+    assert json.loads(lines[2]) == {"step": 3, "loss": 0.25} and len(lines) == 3
+    assert seen == [{"step": 3, "loss": 0.25}]
+    # a clean file gets no blank line
+    q = tmp_path / "clean.jsonl"
+    q.write_text('{"step": 1}\n')
+    log = MetricsLog(q, FitCallbacks())
+    log.write({"step": 2})
+    log.close()
+    assert q.read_text() == '{"step": 1}\n{"step": 2}\n'
