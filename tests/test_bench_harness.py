@@ -293,3 +293,23 @@ def test_level_savings_at_every_shared_whole_db_level_up_to_the_lower_final():
     # swapped roles: the same levels, the opposite sign of the time difference
     assert [x["saved_pct"] for x in level_savings(b, a)] == pytest.approx([20.0, 100 / 3, 200 / 7])
     assert level_savings(a, _rec("s", "fast", "all_on", [(30, 30.0)])) == []
+
+
+def test_fall_probe_summary_peak_last_and_fall(tmp_path):
+    """bench.fall_probe's summary: per row kind the peak over evaluations (with the wall_s of
+    the n-th test record), the last value and the fall between them; a null PSNR is skipped."""
+    from bench.fall_probe import summarize_fall
+    walls = (30.0, 60.0, 90.0)
+    (tmp_path / "metrics.jsonl").write_text("\n".join(
+        json.dumps({"kind": "test", "step": 10 * k, "wall_s": w}) for k, w in enumerate(walls)) + "\n")
+    rows = []
+    for k, (held, train) in enumerate(((20.0, 21.0), (23.5, 24.0), (22.0, None)), 1):
+        rows += [{"eval": k, "weights": "held_out", "test_psnr": held, "inv_s": 10.0 * k},
+                 {"eval": k, "weights": "train", "test_psnr": train, "inv_s": 10.0 * k}]
+    (tmp_path / "probe.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    s = summarize_fall(tmp_path / "probe.jsonl", tmp_path / "metrics.jsonl")
+    h = s["held_out"]
+    assert (h["peak"], h["peak_wall_s"], h["last"], h["last_wall_s"]) == (23.5, 60.0, 22.0, 90.0)
+    assert h["fall"] == pytest.approx(1.5) and (h["inv_s_at_peak"], h["inv_s_last"]) == (20.0, 30.0)
+    t = s["train"]   # its last row has no PSNR: the last kept one is evaluation 2, the peak
+    assert (t["peak"], t["last"], t["fall"], t["last_wall_s"]) == (24.0, 24.0, 0.0, 60.0)
