@@ -15,6 +15,7 @@ import io
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -47,6 +48,26 @@ def main() -> int:
     env = dict(os.environ, NEPF_DATA_DIR=str(data))
     srv = subprocess.Popen([sys.executable, "-m", "nepf_core.cli", "serve", "--host", a.host, "--port", str(a.port)],
                            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)
+    # a SIGTERM (a closed terminal, a process manager) stops the server too, as Ctrl-C does
+    signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        return _run(a, srv, buf, scene)
+    except KeyboardInterrupt:
+        return 0
+    finally:
+        srv.terminate()
+        try:
+            srv.wait(15)
+        except subprocess.TimeoutExpired:
+            srv.kill()
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def _run(a, srv: subprocess.Popen, buf: io.BytesIO, scene: Path) -> int:
+    """Wait for the login URL, queue the demo job, then echo the server's output until it exits."""
     token, url = None, None
     deadline = time.time() + 120
     while time.time() < deadline and token is None:
@@ -59,7 +80,6 @@ def main() -> int:
             url, token = m.group(0), m.group(2)
     if token is None:
         print("[demo] the server did not print a login URL", file=sys.stderr)
-        srv.kill()
         return 1
     base = f"http://{a.host}:{a.port}"
     for _ in range(120):
@@ -82,15 +102,9 @@ def main() -> int:
     except Exception as e:  # the server stays up; the user can upload by hand
         print(f"[demo] could not queue the demo job: {e}", file=sys.stderr)
     print(f"[demo] open {url}", flush=True)
-    try:
-        for line in srv.stdout:
-            print(line, end="", flush=True)
-    except KeyboardInterrupt:
-        pass
-    finally:
-        srv.terminate()
-        srv.wait(10)
-    return 0
+    for line in srv.stdout:
+        print(line, end="", flush=True)
+    return srv.wait()
 
 
 if __name__ == "__main__":
