@@ -197,6 +197,7 @@ def summarize(results: dict, target_psnr: float | None = None) -> dict:
             "steps": steps, "train_wall_s": wall,
             "test_psnr": _median([f.get("test_psnr") for f in fins]),
             "test_psnr_full": _median([f.get("test_psnr_full") for f in fins]),
+            "test_psnr_radiance": _median([f.get("test_psnr_radiance") for f in fins]),
             "albedo_psnr": _median([f.get("albedo_psnr") for f in fins]),
             "albedo_psnr_lit": _median([f.get("albedo_psnr_lit") for f in fins]),
             "best_test_psnr": _median([best_psnr(r) for r in recs]),
@@ -356,15 +357,15 @@ def write_table(results: dict, summary: dict, path: Path) -> None:
          + f"; load average (1, 5, 15 min) at start {_la(m.get('loadavg'))} and end {_la(m.get('loadavg_end'))}.", ""]
     L += ["## Runs", "",
           "| scene | config | variant | n | status | budget s | steps | train wall s | test PSNR masked | "
-          "test PSNR full | albedo PSNR | albedo PSNR lit px | Chamfer (unit sphere) | peak RSS MB | s/step | "
+          "test PSNR full | radiance PSNR masked | albedo PSNR | albedo PSNR lit px | Chamfer (unit sphere) | peak RSS MB | s/step | "
           "NaN steps | X (dB) | time to X (s) | CPU util |",
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in sorted(summary["rows"], key=lambda r: (r["scene"], r["config"], r["variant"])):
         ch = _fmt(r["chamfer"], 5) + ("" if r["chamfer_fine"] or r["chamfer"] is None else "*")
         tx = _fmt_t(r["t_to_X"]) + (f" ({r['t_to_X_reached']})" if r["n"] > 1 else "")
         L.append(f"| {r['scene']} | {r['config']} | {r['variant']} | {r['n']} | {r['status']} | {_fmt(r['budget_s'], 0)} | "
                  f"{_fmt(r['steps'], 0)} | {_fmt(r['train_wall_s'], 0)} | {_fmt(r['test_psnr'])} | "
-                 f"{_fmt(r['test_psnr_full'])} | {_fmt(r['albedo_psnr'])} | {_fmt(r['albedo_psnr_lit'])} | {ch} | {_fmt(r['peak_rss_mb'], 0)} | "
+                 f"{_fmt(r['test_psnr_full'])} | {_fmt(r.get('test_psnr_radiance'))} | {_fmt(r['albedo_psnr'])} | {_fmt(r['albedo_psnr_lit'])} | {ch} | {_fmt(r['peak_rss_mb'], 0)} | "
                  f"{_fmt(r['s_per_step'], 3)} | {_fmt(r['nonfinite_steps'], 0)} | {_fmt(r['target_X'])} | {tx} | "
                  f"{_fmt(r['cpu_util'], 2)} |")
     res = {r["chamfer_resolution"] for r in summary["rows"]}
@@ -471,7 +472,8 @@ def plot_scene(results: dict, scene: str, out_png: Path) -> None:
 
     runs = [r for r in results.get("runs", []) if r["scene"] == scene]
     groups = _groups(runs)
-    panels = [("test_psnr", "test PBR PSNR, masked (dB)"), ("chamfer", "Chamfer (unit sphere)"),
+    panels = [("test_psnr", "test PBR PSNR, masked (dB)"), ("test_psnr_radiance", "test radiance PSNR, masked (dB)"),
+              ("chamfer", "Chamfer (unit sphere)"),
               ("albedo_psnr", "albedo PSNR, aligned (dB)"), ("albedo_psnr_lit", "albedo PSNR, lit pixels (dB)")]
     fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4.2))
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
@@ -486,7 +488,7 @@ def plot_scene(results: dict, scene: str, out_png: Path) -> None:
                     ax.plot(*zip(*pts), marker="o", ms=3, color=col, alpha=1.0 if j == 0 else 0.35,
                             lw=1.5 if j == 0 else 0.8, label=label if j == 0 else None)
             if _finite(r.get("chamfer_final")):
-                axes[1].plot([r.get("train_wall_s") or (c[-1]["wall_s"] if c else 0)], [r["chamfer_final"]],
+                axes[[k for k, _ in panels].index("chamfer")].plot([r.get("train_wall_s") or (c[-1]["wall_s"] if c else 0)], [r["chamfer_final"]],
                              marker="*", ms=11, color=col, ls="none",
                              label=f"{label} final {r.get('chamfer_resolution')}³" if j == 0 else None)
     for ax, (key, ylabel) in zip(axes, panels):

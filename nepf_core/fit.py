@@ -195,24 +195,32 @@ def evaluate_test(model, cfg: NePFConfig, targets: EvalTargets, device, world_fr
                   stride: int, with_chamfer: bool) -> dict:
     """Held-out metrics: masked/full PBR PSNR, aligned albedo PSNR, Chamfer (when given).
 
+    ``test_psnr`` / ``test_psnr_full`` score the surface PBR colour (the method's relightable
+    output); ``test_psnr_radiance`` / ``test_psnr_radiance_full`` score the outgoing-radiance
+    network's volume-rendered colour ``sum_i w_i c_r(x_i, v)`` on the same pixels (the quantity a
+    plain NeuS reports, so NePF can be compared with one).
+
     ``albedo_psnr`` is over every foreground pixel; ``albedo_psnr_lit`` only over foreground
     pixels whose test image is lit (``max_c L_gt >= unlit_rel_threshold * q99``, the training
     rule), with ``lit_fraction`` their share of the foreground.
     """
     ts = targets.test_scene
     sampler = PixelSampler(ts, device)
-    preds, albs = [], []
+    preds, rads, albs = [], [], []
     for k in range(ts.n_views):
         r = render_view(model, sampler, k, cfg.render, stride=stride)
-        preds.append(r["pbr"]); albs.append(r["albedo"])
-    pred = np.stack(preds)
+        preds.append(r["pbr"]); rads.append(r["radiance"]); albs.append(r["albedo"])
+    pred, rad = np.stack(preds), np.stack(rads)
     gt = ts.images[:, ::stride, ::stride]
-    rec = {"test_psnr_full": psnr(srgb_np(pred), srgb_np(gt))}
+    rec = {"test_psnr_full": psnr(srgb_np(pred), srgb_np(gt)),
+           "test_psnr_radiance_full": psnr(srgb_np(rad), srgb_np(gt))}
     if ts.masks is not None:
         m = ts.masks[:, ::stride, ::stride]
         rec["test_psnr"] = psnr(srgb_np(pred), srgb_np(gt), m)
+        rec["test_psnr_radiance"] = psnr(srgb_np(rad), srgb_np(gt), m)
     else:
         rec["test_psnr"] = rec["test_psnr_full"]
+        rec["test_psnr_radiance"] = rec["test_psnr_radiance_full"]
     if targets.gt_albedo is not None and ts.masks is not None:
         ga = targets.gt_albedo[:, ::stride, ::stride]
         m = ts.masks[:, ::stride, ::stride]

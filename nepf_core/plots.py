@@ -24,7 +24,8 @@ def plot_error_vs_time(metrics_path, out_png) -> None:
     import matplotlib.pyplot as plt
 
     recs = read_metrics(metrics_path)
-    panels = [("test_psnr", "test PBR PSNR (dB)", "test"), ("albedo_psnr", "albedo PSNR (dB)", "test"),
+    panels = [("test_psnr", "test PBR PSNR (dB)", "test"), ("test_psnr_radiance", "test radiance PSNR (dB)", "test"),
+              ("albedo_psnr", "albedo PSNR (dB)", "test"),
               ("albedo_psnr_lit", "albedo PSNR, lit pixels (dB)", "test"),
               ("chamfer", "Chamfer (unit sphere)", "test"), ("psnr_r", "sync PSNR (dB)", "sync"),
               ("loss", "training loss", "train")]

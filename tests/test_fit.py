@@ -134,3 +134,27 @@ def test_metrics_log_starts_a_new_line_after_a_line_cut_by_a_kill(tmp_path):
     log.write({"step": 2})
     log.close()
     assert q.read_text() == '{"step": 1}\n{"step": 2}\n'
+
+
+@pytest.mark.parametrize("channel, exact_key, other_key", [("radiance", "test_psnr_radiance", "test_psnr"),
+                                                           ("pbr", "test_psnr", "test_psnr_radiance")])
+def test_held_out_psnr_keys_score_their_own_channel(small_scene, channel, exact_key, other_key):
+    """Held-out views whose images ARE the model's render of one channel: that channel's PSNR hits
+    the MSE floor (100 dB, masked and full) and the other channel's does not."""
+    import dataclasses
+
+    from nepf_core.evaluate import render_view
+    from nepf_core.fit import EvalTargets, evaluate_test
+    from nepf_core.model import NePFModel
+    from nepf_core.rays import PixelSampler
+
+    torch.manual_seed(0)
+    cfg = _cfg()
+    model = NePFModel(cfg.model)
+    dev = torch.device("cpu")
+    sampler = PixelSampler(small_scene, dev)
+    imgs = np.stack([render_view(model, sampler, k, cfg.render)[channel] for k in range(small_scene.n_views)])
+    test = dataclasses.replace(small_scene, images=imgs.astype(np.float32))
+    rec = evaluate_test(model, cfg, EvalTargets(test_scene=test), dev, np.eye(4), 1, False)
+    assert rec[exact_key] == pytest.approx(100.0) and rec[exact_key + "_full"] == pytest.approx(100.0)
+    assert rec[other_key] < 60.0
