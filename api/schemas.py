@@ -63,7 +63,7 @@ class JobList(BaseModel):
 class MetricsPage(BaseModel):
     records: list[dict[str, Any]] = Field(
         description="metrics.jsonl records: step, wall_s, losses; kind=sync: psnr_r/psnr_surf/psnr_vol; "
-                    "kind=test: test_psnr, chamfer, albedo_psnr.")
+                    "kind=test: test_psnr, test_psnr_radiance, chamfer, albedo_psnr.")
     since: int = Field(description="The cursor this page starts at.")
     next_since: int = Field(description="Pass as ?since= to get only newer records.")
     status: Status

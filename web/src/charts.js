@@ -11,7 +11,8 @@ const SYNC_KEYS = [
   { key: 'psnr_vol', label: 'L_vol (volume)' },
 ];
 const ERR_KEYS = [
-  { key: 'test_psnr', label: 'test PSNR (dB)', scale: 'db' },
+  { key: 'test_psnr', label: 'test PBR PSNR (dB)', scale: 'db' },
+  { key: 'test_psnr_radiance', label: 'test radiance PSNR (dB)', scale: 'db' },
   { key: 'albedo_psnr', label: 'albedo PSNR (dB)', scale: 'db' },
   { key: 'chamfer', label: 'Chamfer', scale: 'dist' },
 ];
