@@ -26,7 +26,8 @@ def test_lit_albedo_psnr_ignores_pixels_the_light_never_reaches(monkeypatch):
 
     monkeypatch.setattr(fitmod, "PixelSampler", lambda scene, device: None)
     monkeypatch.setattr(fitmod, "render_view",
-                        lambda model, sampler, k, rcfg, stride: {"pbr": img[k], "albedo": pred[k]})
+                        lambda model, sampler, k, rcfg, stride: {"pbr": img[k], "radiance": img[k],
+                                                                 "albedo": pred[k]})
     rec = evaluate_test(None, tiny(), EvalTargets(test_scene=test, gt_albedo=gt_alb), "cpu", np.eye(4),
                         stride=1, with_chamfer=False)
 
