@@ -138,11 +138,14 @@ def cmd_eval(a) -> int:
     scene = info["scene"]
     arr = np.load(out_dir / "renders" / "arrays.npz")
     pred, gt = srgb_np(arr["pbr"]), srgb_np(scene.images)
+    rad = srgb_np(arr["radiance"])   # the radiance network's colour: what a plain NeuS reports
     res = {"views": scene.n_views, "psnr_full": psnr(pred, gt),
-           "ssim_full": float(np.mean([ssim(pred[i], gt[i]) for i in range(len(gt))]))}
+           "ssim_full": float(np.mean([ssim(pred[i], gt[i]) for i in range(len(gt))])),
+           "radiance_psnr_full": psnr(rad, gt)}
     if scene.masks is not None:
         m = scene.masks
         res["psnr_masked"] = psnr(pred, gt, m)
+        res["radiance_psnr_masked"] = psnr(rad, gt, m)
         res["ssim_masked"] = float(np.mean([ssim(pred[i] * m[i][..., None], gt[i] * m[i][..., None])
                                             for i in range(len(gt))]))
     if a.gt_mesh:
@@ -151,7 +154,8 @@ def cmd_eval(a) -> int:
         cw, cu = chamfer_against_gt(ModelFieldQuery(model), state["extra"]["world_from_norm"], a.gt_mesh,
                                     resolution=a.resolution, device=next(model.parameters()).device)
         res["chamfer_world"], res["chamfer_unit_sphere"] = cw, cu
-    res["conventions"] = ("PSNR/SSIM on sRGB values in [0,1]; masked = GT foreground pixels only (SSIM: "
+    res["conventions"] = ("psnr_*/ssim_*: the surface PBR colour; radiance_psnr_*: the radiance network's "
+                          "volume-rendered colour. PSNR/SSIM on sRGB values in [0,1]; masked = GT foreground pixels only (SSIM: "
                           "both images multiplied by the mask); Chamfer = mean of both directions, 100k samples")
     (out_dir).mkdir(parents=True, exist_ok=True)
     (out_dir / "eval.json").write_text(json.dumps(res, indent=2))

@@ -6,6 +6,7 @@ import sys
 import time
 
 import numpy as np
+import pytest
 import trimesh
 from PIL import Image
 
@@ -48,6 +49,15 @@ def test_tiny_fit_render_eval_mesh(small_scene_dir, tmp_path):
         assert np.isfinite(ev[k]), k
     # a 40-step fit is crude but must be better than an all-black prediction on the foreground
     assert ev["psnr_masked"] > 5.0
+    # the radiance scores are the saved radiance renders against the held-out images, recomputed here
+    from nepf_core.data.detect import load_scene
+    from nepf_core.evaluate import srgb_np
+    held = load_scene(small_scene_dir / "gt" / "dtu_test")
+    rad = np.load(run / "eval" / "renders" / "arrays.npz")["radiance"]
+    se = (srgb_np(rad).astype(np.float64) - srgb_np(held.images).astype(np.float64)) ** 2
+    assert ev["radiance_psnr_full"] == pytest.approx(-10 * np.log10(se.mean()), abs=1e-6)
+    assert ev["radiance_psnr_masked"] == pytest.approx(-10 * np.log10(se[held.masks].mean()), abs=1e-6)
+    assert ev["radiance_psnr_masked"] != pytest.approx(ev["psnr_masked"], abs=1e-6)   # a different channel
 
     p = nepf("mesh", run, "--resolution", "48", "--device", "cpu")
     assert p.returncode == 0, p.stderr[-2000:]
