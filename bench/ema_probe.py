@@ -15,28 +15,20 @@ training clock like the regular one.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 import sys
 from contextlib import contextmanager
 from pathlib import Path
 
+from bench.probe_fit import fit_and_summarize, probe_parser, synthetic_scene
+
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.ema_probe", description=__doc__.split("\n")[0])
-    p.add_argument("scene_dir", help="a synthetic scene folder (input/dtu, gt/dtu_test)")
-    p.add_argument("out", help="run folder to create")
-    p.add_argument("--budget", type=float, default=600.0)
+    p = probe_parser("python -m bench.ema_probe", __doc__)
     p.add_argument("--decays", default="0.999,0.9995", help="extra averages to evaluate (comma-separated)")
-    p.add_argument("--eval-every", type=float, default=30.0)
-    p.add_argument("--eval-stride", type=int, default=2)
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--seed", type=int, default=0)
     a = p.parse_args(argv)
-    scene = Path(a.scene_dir)
-    if not (scene / "input" / "dtu").is_dir() or not (scene / "gt" / "dtu_test").is_dir():
-        raise SystemExit(f"{scene}: not a synthetic scene folder (needs input/dtu and gt/dtu_test)")
+    scene = synthetic_scene(a.scene_dir)
     decays = [float(x) for x in a.decays.split(",") if x.strip()]
     if any(not 0.0 < d < 1.0 for d in decays):
         raise SystemExit(f"--decays must lie in (0, 1): {decays}")
@@ -44,7 +36,6 @@ def main(argv: list[str] | None = None) -> int:
     import torch
     torch.set_num_threads(a.threads)
     import nepf_core.fit as fitmod
-    from nepf_core.jobs import run_job
     from nepf_core.weight_average import ParamEMA
 
     out = Path(a.out)
@@ -55,15 +46,15 @@ def main(argv: list[str] | None = None) -> int:
     class ProbeEMA(ParamEMA):
         """The preset's average plus the extra ones, updated and restarted together."""
 
-        def __init__(self, model, decay):
-            super().__init__(model, decay)
+        def __init__(self, model, decay, half_life_s=0.0):
+            super().__init__(model, decay, half_life_s)
             self.extra = {d: ParamEMA(model, d) for d in decays}
             state["ema"] = self
 
-        def update(self, model):
-            super().update(model)
+        def update(self, model, dt_s=None):
+            super().update(model, dt_s=dt_s)
             for e in self.extra.values():
-                e.update(model)
+                e.update(model, dt_s=dt_s)
 
         def reset(self, model):
             super().reset(model)
@@ -103,14 +94,8 @@ def main(argv: list[str] | None = None) -> int:
 
     fitmod.ParamEMA = ProbeEMA
     fitmod.evaluate_test = probe_eval
-    run_job(str(scene / "input" / "dtu"), out / "run", preset="fast", time_budget_s=a.budget,
-            test_dir=str(scene / "gt" / "dtu_test"), gt_albedo=str(scene / "gt" / "arrays_test.npz") if (scene / "gt" / "arrays_test.npz").exists() else None,
-            export=False, overrides={"train.eval_every_s": a.eval_every, "train.eval_stride": a.eval_stride,
-                                     "train.seed": a.seed}, device="cpu", resume=False, log=lambda *x: None)
+    fit_and_summarize(scene, out, a, summarize_probe, gt_albedo=True)
     log.close()
-    summary = summarize_probe(out / "probe.jsonl", out / "run" / "metrics.jsonl")
-    (out / "probe_summary.json").write_text(json.dumps(summary, indent=2))
-    print(json.dumps(summary, indent=2))
     return 0
 
 

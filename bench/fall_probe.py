@@ -14,37 +14,30 @@ records beside the run's own held-out PSNR (the preset's sampling):
   held-out one falls;
 * ``inv_s``: the NeuS sharpness at that evaluation.
 
-Rows go to ``OUT/probe.jsonl`` as ``{"eval", "step", "wall_s", "weights", "test_psnr"}``
-(``weights`` is ``held_out``, ``dense`` or ``train``); the summary printed and written to
+Rows go to ``OUT/probe.jsonl`` as ``{"eval", "weights", "test_psnr", "inv_s"}`` (``weights`` is
+``held_out``, ``dense`` or ``train``; the wall clock of evaluation ``n`` is that of the n-th
+``test`` record of ``metrics.jsonl``); the summary printed and written to
 ``OUT/probe_summary.json`` gives, per row kind, the peak (over evaluations), the last value and
 the fall between them. The extra renders are excluded from the training clock like the
 regular evaluation (they run inside it).
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
 from pathlib import Path
 
+from bench.probe_fit import fit_and_summarize, probe_parser, synthetic_scene
+
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.fall_probe", description=__doc__.split("\n")[0])
-    p.add_argument("scene_dir", help="a synthetic scene folder (input/dtu, gt/dtu_test)")
-    p.add_argument("out", help="run folder to create")
-    p.add_argument("--budget", type=float, default=600.0)
-    p.add_argument("--eval-every", type=float, default=30.0)
-    p.add_argument("--eval-stride", type=int, default=2)
+    p = probe_parser("python -m bench.fall_probe", __doc__)
     p.add_argument("--train-views", type=int, default=8, help="training views rendered at each evaluation")
     p.add_argument("--dense", default="64,64", help="coarse,importance samples of the dense render")
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", default="adaptive", choices=("adaptive", "all_on"))
     a = p.parse_args(argv)
-    scene_dir = Path(a.scene_dir)
-    if not (scene_dir / "input" / "dtu").is_dir() or not (scene_dir / "gt" / "dtu_test").is_dir():
-        raise SystemExit(f"{scene_dir}: not a synthetic scene folder (needs input/dtu and gt/dtu_test)")
+    scene_dir = synthetic_scene(a.scene_dir)
     try:
         n_coarse, n_imp = (int(x) for x in a.dense.split(","))
     except ValueError:
@@ -56,7 +49,6 @@ def main(argv: list[str] | None = None) -> int:
     import torch
     torch.set_num_threads(a.threads)
     import nepf_core.fit as fitmod
-    from nepf_core.jobs import run_job
     from nepf_core.reframe import load_held_out
 
     from bench.run import VARIANTS
@@ -86,15 +78,8 @@ def main(argv: list[str] | None = None) -> int:
         return rec
 
     fitmod.evaluate_test = probe_eval
-    overrides = {"train.eval_every_s": a.eval_every, "train.eval_stride": a.eval_stride, "train.seed": a.seed}
-    overrides.update(VARIANTS[a.variant])
-    run_job(str(scene_dir / "input" / "dtu"), out / "run", preset="fast", time_budget_s=a.budget,
-            test_dir=str(scene_dir / "gt" / "dtu_test"), export=False, overrides=overrides, device="cpu",
-            resume=False, log=lambda *x: None)
+    fit_and_summarize(scene_dir, out, a, summarize_fall, extra_overrides=VARIANTS[a.variant])
     log.close()
-    summary = summarize_fall(out / "probe.jsonl", out / "run" / "metrics.jsonl")
-    (out / "probe_summary.json").write_text(json.dumps(summary, indent=2))
-    print(json.dumps(summary, indent=2))
     return 0
 
 

@@ -476,6 +476,7 @@ def plot_scene(results: dict, scene: str, out_png: Path) -> None:
               ("chamfer", "Chamfer (unit sphere)"),
               ("albedo_psnr", "albedo PSNR, aligned (dB)"), ("albedo_psnr_lit", "albedo PSNR, lit pixels (dB)")]
     fig, axes = plt.subplots(1, len(panels), figsize=(5 * len(panels), 4.2))
+    chamfer_ax = axes[[k for k, _ in panels].index("chamfer")]
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for i, ((_, config, variant), recs) in enumerate(sorted(groups.items())):
         col = colors[i % len(colors)]
@@ -488,7 +489,7 @@ def plot_scene(results: dict, scene: str, out_png: Path) -> None:
                     ax.plot(*zip(*pts), marker="o", ms=3, color=col, alpha=1.0 if j == 0 else 0.35,
                             lw=1.5 if j == 0 else 0.8, label=label if j == 0 else None)
             if _finite(r.get("chamfer_final")):
-                axes[[k for k, _ in panels].index("chamfer")].plot([r.get("train_wall_s") or (c[-1]["wall_s"] if c else 0)], [r["chamfer_final"]],
+                chamfer_ax.plot([r.get("train_wall_s") or (c[-1]["wall_s"] if c else 0)], [r["chamfer_final"]],
                              marker="*", ms=11, color=col, ls="none",
                              label=f"{label} final {r.get('chamfer_resolution')}³" if j == 0 else None)
     for ax, (key, ylabel) in zip(axes, panels):

@@ -210,20 +210,16 @@ def evaluate_test(model, cfg: NePFConfig, targets: EvalTargets, device, world_fr
     for k in range(ts.n_views):
         r = render_view(model, sampler, k, cfg.render, stride=stride)
         preds.append(r["pbr"]); rads.append(r["radiance"]); albs.append(r["albedo"])
-    pred, rad = np.stack(preds), np.stack(rads)
     gt = ts.images[:, ::stride, ::stride]
-    rec = {"test_psnr_full": psnr(srgb_np(pred), srgb_np(gt)),
-           "test_psnr_radiance_full": psnr(srgb_np(rad), srgb_np(gt))}
-    if ts.masks is not None:
-        m = ts.masks[:, ::stride, ::stride]
-        rec["test_psnr"] = psnr(srgb_np(pred), srgb_np(gt), m)
-        rec["test_psnr_radiance"] = psnr(srgb_np(rad), srgb_np(gt), m)
-    else:
-        rec["test_psnr"] = rec["test_psnr_full"]
-        rec["test_psnr_radiance"] = rec["test_psnr_radiance_full"]
+    gt_srgb = srgb_np(gt)
+    m = None if ts.masks is None else ts.masks[:, ::stride, ::stride]
+    rec = {}
+    for key, colour in (("test_psnr", preds), ("test_psnr_radiance", rads)):
+        c = srgb_np(np.stack(colour))
+        rec[key + "_full"] = psnr(c, gt_srgb)
+        rec[key] = rec[key + "_full"] if m is None else psnr(c, gt_srgb, m)
     if targets.gt_albedo is not None and ts.masks is not None:
         ga = targets.gt_albedo[:, ::stride, ::stride]
-        m = ts.masks[:, ::stride, ::stride]
         alb = np.stack(albs)
         rec["albedo_psnr"], _ = albedo_psnr_aligned(alb, ga, m)
         # the same metric on the observable pixels only: a pixel the light never reaches carries

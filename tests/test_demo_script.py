@@ -8,7 +8,6 @@ import os
 import re
 import signal
 import sys
-import time
 
 import httpx
 
@@ -78,8 +77,6 @@ def test_demo_generates_a_scene_serves_it_and_trains_it_once(tmp_path):
         out = demo.output()
         assert "generating the demo scene" not in out
         assert re.search(r"\[demo\] queued job ([0-9a-f]{32})", out).group(1) == job_id
-        jobs = httpx.get(base + "/jobs", headers=h).json()
-        items = jobs["items"] if isinstance(jobs, dict) else jobs
-        assert [j["id"] for j in items] == [job_id]
+        assert [j["id"] for j in httpx.get(base + "/jobs", headers=h).json()["items"]] == [job_id]
     finally:
         demo.stop()
