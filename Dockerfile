@@ -1,7 +1,9 @@
 # syntax=docker/dockerfile:1
-# NePF service image: API (`nepf serve`) and worker (`nepf worker`) share it; see docs/SERVICE.md.
+# NePF service image: one image for the API (`nepf serve`) and the worker (`nepf worker`);
+# docker-compose.yml builds it once and runs both from it. See docs/SERVICE.md.
 #   CPU:  docker build -t nepf .
 #   CUDA: docker build -t nepf:cuda --build-arg TORCH_INDEX_URL=https://download.pytorch.org/whl/cu121 .
+# torch: the version pinned in pyproject.toml (the only place it is written), from TORCH_INDEX_URL.
 
 # ---- web viewer (static files, served by the API at /) ------------------------------------
 FROM node:22-slim AS web
@@ -12,28 +14,37 @@ COPY web/ ./
 RUN npm run build
 
 # ---- python ---------------------------------------------------------------------------------
-FROM python:3.11-slim AS app
+# bookworm: the Debian release .ci/apt-packages.txt was checked on
+FROM python:3.11-slim-bookworm AS app
 ARG TORCH_INDEX_URL=https://download.pytorch.org/whl/cpu
 ENV PYTHONDONTWRITEBYTECODE=1 \
     PYTHONUNBUFFERED=1 \
     PIP_NO_CACHE_DIR=1 \
     NEPF_DATA_DIR=/data \
     NEPF_WEB_DIR=/app/web/dist
-# libGL/libXrender/libglib: VTK (pyvista) and OpenCV-style wheels load them at import
+# Headless GL for the export previews (VTK offscreen: EGL + OSMesa), the list scripts/install.sh
+# installs less the browser-test packages; libgl1/libglib2.0-0/libxrender1: loaded by VTK at import.
+COPY .ci/apt-packages.txt /tmp/apt-packages.txt
 RUN apt-get update \
- && apt-get install -y --no-install-recommends libgl1 libglib2.0-0 libxrender1 libegl1 \
- && rm -rf /var/lib/apt/lists/*
+ && apt-get install -y --no-install-recommends \
+      $(grep -v -e '^\s*#' -e '^\s*$' -e '^chromium$' /tmp/apt-packages.txt) \
+      libgl1 libglib2.0-0 libxrender1 \
+ && rm -rf /var/lib/apt/lists/* /tmp/apt-packages.txt
 WORKDIR /app
 COPY pyproject.toml ./
+# torch first (its own layer): the pinned version from pyproject.toml, CPU or CUDA wheel
+RUN pip install --index-url "${TORCH_INDEX_URL}" "$(python -c 'import tomllib; \
+deps = tomllib.load(open("pyproject.toml", "rb"))["project"]["dependencies"]; \
+print(next(d for d in deps if d.startswith("torch")))')"
 COPY nepf_core ./nepf_core
+COPY jobstore ./jobstore
 COPY api ./api
 COPY worker ./worker
-COPY bench ./bench
-RUN pip install --index-url "${TORCH_INDEX_URL}" torch \
- && pip install . "uvicorn[standard]"
+RUN pip install ".[service]"
 COPY --from=web /web/dist ./web/dist
 RUN useradd --create-home --uid 1000 nepf && mkdir -p /data && chown nepf:nepf /data
 USER nepf
 VOLUME ["/data"]
 EXPOSE 8000
+# the job store schema is migrated by `nepf serve` (and by `nepf worker`) at start
 CMD ["nepf", "serve", "--host", "0.0.0.0", "--port", "8000"]

@@ -21,7 +21,7 @@ from typing import Optional
 from sqlalchemy import select
 from sqlalchemy.orm import sessionmaker
 
-from .db import Token
+from jobstore.models import Token
 
 TOKEN_PREFIX = "nepf_"
 

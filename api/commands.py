@@ -33,7 +33,8 @@ def ensure_local_token(settings) -> tuple[str, bool]:
     from sqlalchemy import select
 
     from .auth import create_token, hash_token
-    from .db import Token, session_factory
+    from jobstore.engine import session_factory
+    from jobstore.models import Token
 
     settings.data_path.mkdir(parents=True, exist_ok=True)
     Session = session_factory(settings.db_url)
@@ -52,8 +53,20 @@ def ensure_local_token(settings) -> tuple[str, bool]:
     return tok, True
 
 
+#: how long ``nepf serve`` waits for its worker to stop (the running job stops at its next step
+#: and is re-queued) before it kills it (the job then resumes once its lease expires)
+WORKER_STOP_GRACE_S = 60.0
+
+
 class WorkerSupervisor(threading.Thread):
-    """Keeps one local worker subprocess alive (embedded default); restarts it if it dies."""
+    """Keeps one local worker subprocess alive (embedded default); restarts it if it dies.
+
+    The worker runs in its own process group, so a Ctrl-C in the terminal reaches ``nepf serve``
+    alone, which then stops the worker in order (:meth:`stop`: SIGTERM, the running job is
+    re-queued). It gets ``--parent-pid``: it stops by itself when serve dies, even by ``kill -9``
+    (``worker/lifetime.py``). This thread starts the worker and outlives it: the parent-death
+    signal fires when the thread that forked the worker exits.
+    """
 
     def __init__(self, argv: list[str], env: dict, nice: int = 0) -> None:
         super().__init__(name="nepf-worker-supervisor", daemon=True)
@@ -63,15 +76,22 @@ class WorkerSupervisor(threading.Thread):
         self.proc: Optional[subprocess.Popen] = None
         self.stopping = threading.Event()
         self.restarts = 0
+        self._spawn_lock = threading.Lock()   # stop() never misses a worker started at that moment
+
+    def _prepare_child(self) -> None:
+        os.setpgid(0, 0)          # own process group: the terminal's Ctrl-C goes to serve only
+        if self.nice > 0:         # niced: on a shared machine the API stays responsive while it trains
+            os.nice(self.nice)
 
     def run(self) -> None:
         backoff = 1.0
-        while not self.stopping.is_set():
-            started = time.monotonic()
-            # the worker runs niced: on a shared machine the API stays responsive while it trains
-            nice = self.nice
-            self.proc = subprocess.Popen(self.argv, env=self.env, cwd=str(REPO_ROOT),
-                                         preexec_fn=(lambda: os.nice(nice)) if nice > 0 else None)
+        while True:
+            with self._spawn_lock:
+                if self.stopping.is_set():
+                    return
+                started = time.monotonic()
+                self.proc = subprocess.Popen(self.argv + ["--parent-pid", str(os.getpid())], env=self.env,
+                                             cwd=str(REPO_ROOT), preexec_fn=self._prepare_child)
             print(f"[nepf serve] worker pid {self.proc.pid}", flush=True)
             self.proc.wait()
             if self.stopping.is_set():
@@ -81,18 +101,30 @@ class WorkerSupervisor(threading.Thread):
             self.restarts += 1
             self.stopping.wait(backoff)
 
-    def stop(self, grace: float = 5.0) -> None:
-        self.stopping.set()
+    def stop(self, grace: float = WORKER_STOP_GRACE_S) -> None:
+        """SIGTERM (Celery's warm shutdown): a running job stops at its next step, goes back to the
+        queue and resumes from its checkpoint at the next start. SIGKILL after ``grace`` s."""
+        with self._spawn_lock:
+            self.stopping.set()
+            p = self.proc
+        if p is not None and p.poll() is None:
+            print(f"[nepf serve] stopping the worker (pid {p.pid}); a running job is re-queued", flush=True)
+            p.send_signal(signal.SIGTERM)
+            try:
+                p.wait(grace)
+            except subprocess.TimeoutExpired:
+                print(f"[nepf serve] the worker did not stop in {grace:g} s: killing it", flush=True)
+                self.kill_now()
+                p.wait()
+        if self.is_alive():
+            self.join(timeout=5)
+
+    def kill_now(self) -> None:
+        """SIGKILL the worker (a second Ctrl-C); its job resumes once its lease expires. No wait
+        here: it may run in a signal handler while :meth:`stop` is already waiting."""
         p = self.proc
-        if p is None or p.poll() is not None:
-            return
-        # cold shutdown: a job in flight resumes from its checkpoint at the next start
-        p.send_signal(signal.SIGQUIT)
-        try:
-            p.wait(grace)
-        except subprocess.TimeoutExpired:
+        if p is not None and p.returncode is None:
             p.kill()
-            p.wait()
 
 
 def serve_parser() -> argparse.ArgumentParser:
@@ -106,11 +138,26 @@ def serve_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _stop_on_signal(signum, frame) -> None:
+    """SIGTERM/SIGINT outside uvicorn's own handlers (before it starts, and the signal uvicorn
+    re-raises after its graceful shutdown): leave ``serve_main`` through its ``finally``."""
+    raise SystemExit(0)
+
+
 def serve_main(argv: list[str] | None = None) -> int:
     args = serve_parser().parse_args(argv)
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _stop_on_signal)
     settings = _settings_with(args.data_dir)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     settings.data_path.mkdir(parents=True, exist_ok=True)
+    from jobstore.engine import get_engine
+    from jobstore.migrate import SchemaMismatch
+    try:
+        get_engine(settings.db_url)   # applies the job store migrations before the API or worker starts
+    except SchemaMismatch as exc:
+        print(f"nepf serve: {exc}", file=sys.stderr)
+        return 2
     token, created = ensure_local_token(settings)
     shown_host = "127.0.0.1" if args.host in ("0.0.0.0", "::", "") else args.host
     base = settings.public_url or f"http://{shown_host}:{args.port}"
@@ -138,6 +185,11 @@ def serve_main(argv: list[str] | None = None) -> int:
                     timeout_graceful_shutdown=3)
     finally:
         if sup is not None:
+            def force(signum, frame) -> None:
+                print("[nepf serve] second signal: killing the worker now", flush=True)
+                sup.kill_now()
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                signal.signal(sig, force)
             sup.stop()
     return 0
 
@@ -158,7 +210,8 @@ def token_main(argv: list[str] | None = None) -> int:
     from sqlalchemy import select, update
 
     from .auth import create_token
-    from .db import Token, session_factory
+    from jobstore.engine import session_factory
+    from jobstore.models import Token
 
     Session = session_factory(settings.db_url)
     if args.cmd == "create":

@@ -10,7 +10,11 @@ from __future__ import annotations
 from typing import Any, Optional
 
 from fastapi import Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match, Mount
+from starlette.staticfiles import StaticFiles
 
 
 class ApiError(Exception):
@@ -33,3 +37,41 @@ async def api_error_handler(_request: Request, exc: ApiError) -> JSONResponse:
 
 def not_found(what: str = "job") -> ApiError:
     return ApiError(404, "not_found", f"{what} not found")
+
+
+#: methods probed when listing what a path allows
+HTTP_METHODS = ("DELETE", "GET", "HEAD", "OPTIONS", "PATCH", "POST", "PUT")
+
+
+def allowed_methods(routes, path: str, root_path: str = "") -> list[str]:
+    """The methods the app answers on ``path``, found by asking each route whether it matches a
+    probe request of each method (the router's own test, so included routers count too). The
+    static catch-all mount (GET, HEAD) counts only where no API route knows the path: an API
+    path lists its own methods (``/jobs/{id}/cancel``: POST), not the viewer's files'."""
+    api: set[str] = set()
+    static: set[str] = set()
+    path_known = False
+    for method in HTTP_METHODS:
+        probe = {"type": "http", "method": method, "path": path, "root_path": root_path, "headers": []}
+        for route in routes:
+            match, _ = route.matches(probe)
+            if match == Match.NONE:
+                continue
+            if isinstance(route, Mount) and isinstance(route.app, StaticFiles):
+                static |= {method} & {"GET", "HEAD"}
+                continue
+            path_known = True
+            if match == Match.FULL:
+                api.add(method)
+    return sorted(api if path_known else static)
+
+
+async def http_error_handler(request: Request, exc: StarletteHTTPException):
+    """FastAPI's handler, except that a 405 lists every allowed method in ``Allow`` (Starlette's
+    own lists only the first route that matched the path) and has the API's error shape."""
+    if exc.status_code != 405:
+        return await http_exception_handler(request, exc)
+    scope = request.scope
+    allow = ", ".join(allowed_methods(request.app.routes, scope["path"], scope.get("root_path", "")))
+    body = ApiError(405, "method_not_allowed", f"{request.method} is not allowed here; allowed: {allow}")
+    return JSONResponse(body.body(), status_code=405, headers={**(exc.headers or {}), "Allow": allow})

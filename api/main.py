@@ -11,11 +11,14 @@ from fastapi import FastAPI
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from . import db
-from .errors import ApiError, api_error_handler
-from .queue import ping_broker
-from .reconcile import Reconciler
+from jobstore.engine import ping as ping_store
+from jobstore.queue import ping_broker
+from jobstore.reconcile import Reconciler
+
+from .body_limit import BodyLimit, upload_body_cap, upload_too_large
+from .errors import ApiError, api_error_handler, http_error_handler
 from .routes import jobs
 from .schemas import Health
 from .service import Service
@@ -50,6 +53,9 @@ def create_app(settings: Optional[Settings] = None, *, reconciler: Optional[bool
                               "Auth: `Authorization: Bearer <token>` (`nepf token create NAME`).")
     app.state.service = svc
     app.add_exception_handler(ApiError, api_error_handler)
+    app.add_exception_handler(StarletteHTTPException, http_error_handler)
+    app.add_middleware(BodyLimit, caps={("POST", "/jobs"): upload_body_cap(settings)},
+                       error=lambda: upload_too_large(settings))
     if settings.cors_origins.strip():
         from fastapi.middleware.cors import CORSMiddleware
         app.add_middleware(CORSMiddleware, allow_origins=[o.strip() for o in settings.cors_origins.split(",")],
@@ -65,7 +71,7 @@ def create_app(settings: Optional[Settings] = None, *, reconciler: Optional[bool
     async def readyz():
         checks: dict = {}
         ok = True
-        for name, fn in (("database", lambda: db.ping(settings.db_url)),
+        for name, fn in (("database", lambda: ping_store(settings.db_url)),
                          ("broker", lambda: ping_broker(svc.celery))):
             try:
                 await run_in_threadpool(fn)

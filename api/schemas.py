@@ -15,6 +15,9 @@ class JobConfig(BaseModel):
     iters: Optional[int] = Field(None, ge=1, le=10_000_000)
     time_budget_s: Optional[float] = Field(None, gt=0, le=30 * 24 * 3600)
     name: Optional[str] = Field(None, max_length=200)
+    max_image_side: Optional[int] = Field(
+        None, ge=8, description="Working resolution: longer image sides are area-resampled down to it at load "
+                                "(at most NEPF_MAX_IMAGE_SIDE; None: that ceiling).")
 
 
 class Progress(BaseModel):

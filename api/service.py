@@ -11,9 +11,10 @@ from celery import Celery
 from fastapi import Request
 from sqlalchemy.orm import sessionmaker
 
+from jobstore.engine import session_factory
+from jobstore.queue import make_celery
+
 from .auth import TokenVerifier, load_secret
-from .db import session_factory
-from .queue import make_celery
 from .settings import Settings
 
 

@@ -34,6 +34,12 @@ class Settings(BaseSettings):
     max_zip_ratio: float = Field(200.0, description="Cap on uncompressed/compressed size, per entry and total.")
     max_zip_entries: int = Field(10000, description="Cap on the number of entries in the zip.")
     max_image_pixels: int = Field(50_000_000, description="Pillow pixel limit (image-bomb guard).")
+    max_total_pixels: int = Field(
+        400_000_000, ge=0, description="Cap on the decoded pixels of a dataset's images, all views together, "
+                                       "read from the headers before decoding (0: none).")
+    max_image_side: int = Field(
+        1600, ge=0, description="Working-resolution ceiling: longer image sides are area-resampled down to it "
+                                "at load; a job's max_image_side may ask less, not more (0: full resolution).")
     validate_timeout_s: float = Field(300.0, description="Timeout of the dataset validation subprocess.")
     validate_max_memory_mb: int = Field(4096, description="Address-space cap of the validation subprocess (0: none).")
     python_executable: Optional[str] = Field(
@@ -57,7 +63,10 @@ class Settings(BaseSettings):
     embedded_poll_s: float = Field(0.1, description="Polling interval of the embedded SQLite broker.")
     embedded_worker: bool = Field(True, description="`nepf serve` without a broker starts a local worker.")
     embedded_worker_nice: int = Field(10, description="Nice increment of the embedded worker (keeps the API responsive).")
-    run_job: str = Field("nepf_core.jobs:run_job", description="module:function the worker calls (test hook).")
+    pipeline: str = Field(
+        "nepf_core.pipeline:run_pipeline", pattern=r"^[A-Za-z_][\w.]*:[A-Za-z_]\w*$",
+        description="package.module:function the worker runs a job with: "
+                    "pipeline(JobRequest) -> summary dict (nepf_core/pipeline.py).")
 
     # --- HTTP ----------------------------------------------------------------------------
     public_url: Optional[str] = Field(None, description="Base URL printed in the login link.")
@@ -87,6 +96,14 @@ class Settings(BaseSettings):
         if self.broker_url:
             return self.broker_url
         return f"nepfsqla+sqlite:///{self.data_path / 'broker.sqlite3'}"
+
+    def job_max_side(self, asked: Optional[int]) -> int:
+        """The long side a job trains at: its ``max_image_side`` capped by the ceiling
+        ``max_image_side`` (the ceiling when it asks nothing; 0: full size)."""
+        ceiling = self.max_image_side
+        if not asked:
+            return ceiling
+        return min(int(asked), ceiling) if ceiling else int(asked)
 
     @property
     def jobs_path(self) -> Path:

@@ -1,5 +1,5 @@
-"""Upload safety: stream the multipart body to disk under a cap, check the zip, extract it
-safely, guard against image bombs, then validate the dataset in a subprocess.
+"""Upload safety: stream the multipart body to disk under a cap, check the zip and extract it
+safely (:mod:`api.zip_safety`), guard against image bombs, then validate the dataset in a subprocess.
 
 Every check raises :class:`api.errors.ApiError` (4xx with a specific code and message); the
 caller deletes the staging folder on any error, so a rejected upload leaves nothing behind.
@@ -12,10 +12,8 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import stat
 import subprocess
 import sys
-import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import AsyncIterator, Optional
@@ -25,9 +23,9 @@ from python_multipart.multipart import MultipartParser, parse_options_header
 
 from .errors import ApiError
 from .settings import Settings
+from .zip_safety import MB
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
-MB = 1024 * 1024
 MAX_CONFIG_BYTES = 64 * 1024
 
 #: image formats the core's loader reads (``nepf_core.data.images.read_image``): suffix -> Pillow format
@@ -35,8 +33,6 @@ IMAGE_FORMATS = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}
 #: image suffixes we recognise but the loader does not read: rejected with a clear message
 OTHER_IMAGE_SUFFIXES = {".tif", ".tiff", ".bmp", ".gif", ".webp", ".heic", ".heif", ".exr", ".hdr",
                         ".jp2", ".tga", ".ppm", ".pgm", ".avif", ".jxl", ".dng", ".raw", ".cr2"}
-JUNK = ("__MACOSX/",)
-JUNK_NAMES = {".DS_Store", "Thumbs.db", "desktop.ini"}
 
 
 @dataclass
@@ -146,7 +142,10 @@ async def receive_multipart(stream: AsyncIterator[bytes], content_type: str, sta
 
 # --------------------------------------------------------------------------- config
 def parse_config(raw: Optional[bytes], settings: Settings) -> dict:
-    """The job config: ``{"preset", "iters", "time_budget_s", "name"}`` (all optional)."""
+    """The job config: ``{"preset", "iters", "time_budget_s", "name", "max_image_side"}`` (all optional).
+
+    ``max_image_side``: the working resolution the job trains at, at most the ceiling
+    ``NEPF_MAX_IMAGE_SIDE`` (None: the ceiling)."""
     cfg: dict = {}
     if raw is not None and raw.strip():
         try:
@@ -155,7 +154,7 @@ def parse_config(raw: Optional[bytes], settings: Settings) -> dict:
             raise ApiError(422, "invalid_config", f"'config' is not valid JSON: {exc}") from None
         if not isinstance(cfg, dict):
             raise ApiError(422, "invalid_config", "'config' must be a JSON object")
-    allowed = {"preset", "iters", "time_budget_s", "name"}
+    allowed = {"preset", "iters", "time_budget_s", "name", "max_image_side"}
     extra = sorted(set(cfg) - allowed)
     if extra:
         raise ApiError(422, "invalid_config",
@@ -175,110 +174,31 @@ def parse_config(raw: Optional[bytes], settings: Settings) -> dict:
     if name is not None and (not isinstance(name, str) or len(name) > 200 or not name.isprintable()):
         raise ApiError(422, "invalid_config", "config.name must be a printable string of at most 200 characters")
     return {"preset": preset, "iters": iters,
-            "time_budget_s": float(budget) if budget is not None else None, "name": name}
+            "time_budget_s": float(budget) if budget is not None else None, "name": name,
+            "max_image_side": check_max_image_side(cfg.get("max_image_side"), settings)}
+
+
+#: smallest working side a job may ask for (the loader needs 8 pixels on the short side)
+MIN_IMAGE_SIDE = 8
+
+
+def check_max_image_side(value, settings: Settings) -> Optional[int]:
+    """A job's ``max_image_side``: an integer in [8, NEPF_MAX_IMAGE_SIDE] (no upper bound
+    when the ceiling is 0), or None."""
+    if value is None:
+        return None
+    ceiling = settings.max_image_side
+    if isinstance(value, bool) or not isinstance(value, int) or value < MIN_IMAGE_SIDE:
+        raise ApiError(422, "invalid_config", f"config.max_image_side must be an integer >= {MIN_IMAGE_SIDE}")
+    if ceiling and value > ceiling:
+        raise ApiError(422, "invalid_config",
+                       f"config.max_image_side = {value} is above this server's ceiling of {ceiling} "
+                       f"pixels (NEPF_MAX_IMAGE_SIDE); ask for {ceiling} or less")
+    return value
+
 
 
 # --------------------------------------------------------------------------- zip
-def _safe_member_path(name: str) -> Optional[PurePosixPath]:
-    """Normalised relative path of a zip member, or raise on zip-slip. None: skip (junk/dir)."""
-    raw = name.replace("\\", "/")
-    if raw.startswith("/") or (len(raw) > 1 and raw[1] == ":") or "\x00" in raw:
-        raise ApiError(422, "zip_slip", f"zip entry {name!r} has an absolute path")
-    parts = [p for p in raw.split("/") if p not in ("", ".")]
-    if any(p == ".." for p in parts):
-        raise ApiError(422, "zip_slip", f"zip entry {name!r} escapes the archive ('..')")
-    if not parts or raw.endswith("/"):
-        return None
-    if raw.startswith(JUNK) or parts[-1] in JUNK_NAMES or parts[-1].startswith("._"):
-        return None
-    return PurePosixPath(*parts)
-
-
-def check_and_extract_zip(zip_path: Path, dest: Path, settings: Settings) -> list[PurePosixPath]:
-    """Check the archive against the caps and extract it into ``dest`` (which must not exist)."""
-    try:
-        zf = zipfile.ZipFile(zip_path)
-    except zipfile.BadZipFile:
-        raise ApiError(422, "not_a_zip", "the 'dataset' upload is not a zip archive") from None
-    except OSError as exc:
-        raise ApiError(422, "not_a_zip", f"the 'dataset' upload cannot be read as a zip: {exc}") from None
-    with zf:
-        infos = zf.infolist()
-        if len(infos) > settings.max_zip_entries:
-            raise ApiError(422, "too_many_entries",
-                           f"zip has {len(infos)} entries; the cap is {settings.max_zip_entries} "
-                           "(NEPF_MAX_ZIP_ENTRIES)")
-        max_total = int(settings.max_unzipped_mb * MB)
-        members: list[tuple[zipfile.ZipInfo, PurePosixPath]] = []
-        seen: set[str] = set()
-        total = 0
-        total_c = 0
-        for info in infos:
-            mode = info.external_attr >> 16
-            ftype = stat.S_IFMT(mode) if info.create_system == 3 else 0
-            if ftype == stat.S_IFLNK:
-                raise ApiError(422, "zip_symlink", f"zip entry {info.filename!r} is a symbolic link")
-            if ftype and ftype not in (stat.S_IFREG, stat.S_IFDIR):
-                raise ApiError(422, "zip_special_file", f"zip entry {info.filename!r} is not a regular file")
-            rel = _safe_member_path(info.filename)
-            if rel is None:
-                continue
-            if info.flag_bits & 0x1:
-                raise ApiError(422, "zip_encrypted", f"zip entry {info.filename!r} is encrypted")
-            key = str(rel).lower()
-            if key in seen:
-                raise ApiError(422, "zip_duplicate", f"zip has two entries named {str(rel)!r}")
-            seen.add(key)
-            total += info.file_size
-            total_c += info.compress_size
-            if total > max_total:
-                raise ApiError(422, "zip_bomb",
-                               f"zip expands to more than {settings.max_unzipped_mb:g} MB "
-                               "(NEPF_MAX_UNZIPPED_MB)")
-            if info.file_size > MB and info.file_size > settings.max_zip_ratio * max(info.compress_size, 1):
-                raise ApiError(422, "zip_bomb",
-                               f"zip entry {str(rel)!r} has a compression ratio above "
-                               f"{settings.max_zip_ratio:g} (NEPF_MAX_ZIP_RATIO)")
-            members.append((info, rel))
-        if total > 8 * MB and total > settings.max_zip_ratio * max(total_c, 1):
-            raise ApiError(422, "zip_bomb", f"zip has a total compression ratio above {settings.max_zip_ratio:g}")
-        if not members:
-            raise ApiError(422, "empty_zip", "the zip archive contains no files")
-        dest.mkdir(parents=True)
-        root = dest.resolve()
-        written = 0
-        for info, rel in members:
-            target = root.joinpath(*rel.parts)
-            if root not in target.parents:
-                raise ApiError(422, "zip_slip", f"zip entry {info.filename!r} escapes the archive")
-            target.parent.mkdir(parents=True, exist_ok=True)
-            fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_NOFOLLOW", 0), 0o644)
-            n = 0
-            try:
-                with os.fdopen(fd, "wb") as out, zf.open(info) as src:
-                    while True:
-                        chunk = src.read(1 << 20)
-                        if not chunk:
-                            break
-                        n += len(chunk)
-                        written += len(chunk)
-                        # headers can lie: enforce the caps on the bytes actually produced
-                        if n > info.file_size or written > max_total:
-                            raise ApiError(422, "zip_bomb",
-                                           f"zip entry {str(rel)!r} expands beyond its declared size")
-                        out.write(chunk)
-            except ApiError:
-                raise
-            except (zipfile.BadZipFile, zlib_error(), OSError, EOFError, NotImplementedError) as exc:
-                raise ApiError(422, "corrupt_zip", f"zip entry {str(rel)!r} cannot be extracted: {exc}") from None
-        return [rel for _, rel in members]
-
-
-def zlib_error():
-    import zlib
-    return zlib.error
-
-
 def dataset_root(extracted: Path) -> Path:
     """Descend through a single wrapping folder (``scan24.zip`` -> ``scan24/...``)."""
     root = extracted
@@ -323,8 +243,9 @@ def check_images(root: Path, members: list[PurePosixPath], settings: Settings) -
                 im.verify()
         except ApiError:
             raise
-        except Image.DecompressionBombError as exc:
-            raise bad("image_bomb", str(exc)) from None
+        except Image.DecompressionBombError:   # Pillow's own limit (twice ours) names its number: state ours
+            raise bad("image_bomb", f"image has more than {settings.max_image_pixels} pixels, the cap "
+                                    "(NEPF_MAX_IMAGE_PIXELS)") from None
         except UnidentifiedImageError:
             raise bad("corrupt_image", "not a readable image (corrupt or wrong format)") from None
         except Exception as exc:  # noqa: BLE001 - Pillow raises many types for corrupt data
@@ -346,14 +267,20 @@ def _limit_memory(mb: int):
     return apply
 
 
-def validate_dataset(root: Path, settings: Settings) -> dict:
-    """Run the core's validator in a subprocess (the API never imports nepf_core)."""
+def validate_dataset(root: Path, settings: Settings, max_side: Optional[int] = None) -> dict:
+    """Run the core's validator in a subprocess (the API never imports nepf_core).
+
+    It checks the decoded-pixel cap ``NEPF_MAX_TOTAL_PIXELS`` from the image headers and
+    reports the working size at ``max_side`` (default: the ceiling ``NEPF_MAX_IMAGE_SIDE``)."""
     py = settings.python_executable or sys.executable
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
     env.setdefault("OMP_NUM_THREADS", "1")
     try:
-        proc = subprocess.run([py, "-m", "nepf_core.data.validate", str(root)], capture_output=True,
+        side = settings.max_image_side if max_side is None else max_side
+        cmd = [py, "-m", "nepf_core.data.validate", "--max-side", str(side),
+               "--max-total-pixels", str(settings.max_total_pixels), str(root)]
+        proc = subprocess.run(cmd, capture_output=True,
                               timeout=settings.validate_timeout_s, env=env, cwd=str(root), stdin=subprocess.DEVNULL,
                               preexec_fn=_limit_memory(settings.validate_max_memory_mb))
     except subprocess.TimeoutExpired:
@@ -374,6 +301,8 @@ def validate_dataset(root: Path, settings: Settings) -> dict:
         if not errors:
             errors = [{"code": "invalid_dataset", "message": "the dataset is invalid", "file": None, "view": None}]
         first = errors[0]
+        if first.get("code") == "too_many_pixels":
+            first["message"] = f"{first.get('message')} (NEPF_MAX_TOTAL_PIXELS)"
         where = ", ".join(x for x in (f"file {first.get('file')}" if first.get("file") else "",
                                       f"view {first.get('view')}" if first.get("view") is not None else "") if x)
         msg = f"[{where}] {first.get('message')}" if where else str(first.get("message"))

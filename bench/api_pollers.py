@@ -120,7 +120,7 @@ def spawn(tmp: Path, fake: bool, iters: int):
 
     extra = {"NEPF_RECONCILE_INTERVAL_S": "5"}
     if fake:
-        extra.update(NEPF_RUN_JOB="service_fixtures:fake_run_job", NEPF_FAKE_STEP_S="0.05")
+        extra.update(NEPF_PIPELINE="service_fixtures:fake_pipeline", NEPF_FAKE_STEP_S="0.05")
     else:
         extra.update(NEPF_EXPORT_TEXTURE_SIZE="64", NEPF_EXPORT_MESH_RESOLUTION="32", NEPF_EXPORT_MAX_FACES="2000")
     data = tmp / "data"
@@ -140,7 +140,7 @@ def enqueue_latency(tmp: Path, n: int) -> dict:
     from service_fixtures import dataset_zip_bytes, local_token, service_env, start_api, upload, wait_for
 
     data = tmp / "data"
-    api, base = start_api(service_env(data, NEPF_RUN_JOB="service_fixtures:fake_run_job",
+    api, base = start_api(service_env(data, NEPF_PIPELINE="service_fixtures:fake_pipeline",
                                       NEPF_FAKE_STEP_S="0.001"), tmp, name="lat-api")
     h = {"Authorization": f"Bearer {local_token(data)}"}
     z = dataset_zip_bytes(tmp)

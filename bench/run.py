@@ -7,7 +7,7 @@ For every (scene, config, variant, repeat), one at a time, a **subprocess** runs
   ``gt/arrays_test.npz``): ``nepf_core.jobs.run_job(..., export=False, device="cpu")`` with
   held-out evaluation every ``--eval-every`` training seconds;
 * real datasets (``--dataset dtu_scan24``): ``load_scene(path, downscale=D)``, every
-  ``--holdout-every``-th view (indices 0, K, 2K, ...) held out, ``nepf_core.fit.fit`` with
+  ``--holdout-every``-th view (indices 0, K, 2K, ...) held out, ``nepf_core.train.fit`` with
   ``EvalTargets(test_scene=...)``, then ``RUN/mesh.ply`` (world coordinates);
 * then re-evaluates Chamfer on the final model with a finer mesh (default 256³, 100k
   samples per mesh) when a GT mesh exists, and writes ``RUN/bench_child.json``.
@@ -38,22 +38,19 @@ DEFAULT_SCENES_ROOT = "/work/shared/scenes"
 DEFAULT_DATASETS_ROOT = "/work/shared/datasets"
 VARIANTS = {
     "adaptive": {},                          # the default: fit() leaves out what the scene does not need
-    # everything on: no decision is taken, and no empty space is skipped (NeuS coarse + importance
-    # sampling with the preset's sample counts, no occupancy grid to maintain)
-    "all_on": {"train.adaptive": False, "render.sampler": "neus", "model.occupancy_resolution": 0},
-    # everything on, but empty space skipped inside each ray by the occupancy-guided sampler
-    # (the fast preset's sampler until the ray thinning replaced it)
-    "all_on_occ": {"train.adaptive": False, "render.sampler": "occupancy"},
+    # everything on: no decision is taken, and no empty ray is left out (no occupancy grid to maintain;
+    # the NeuS coarse + importance sampler with the preset's sample counts)
+    "all_on": {"train.adaptive": False, "model.occupancy_resolution": 0},
     # the brief's naive reference, rebuilt on the NePF model: one dense 96^3 grid level (4 channels),
     # 64-wide heads, finite-difference normals at every sample, 1024 rays x 48 uniform samples (no
     # importance samples, no occupancy grid, no empty rays left out), heads evaluated everywhere,
     # nothing adaptive. The brief measured 0.56 s/step and 21-24 dB held-out radiance PSNR at 300 s
-    "naive": {"train.adaptive": False, "render.sampler": "neus", "model.occupancy_resolution": 0,
+    "naive": {"train.adaptive": False, "model.occupancy_resolution": 0,
               "model.sdf_grid": {"n_levels": 1, "base_resolution": 96, "max_resolution": 96,
                                  "features_per_level": 4, "start_levels": 1},
               "render.n_samples": 48, "render.n_importance": 0, "render.up_sample_steps": 0,
               "render.alpha_mode": "midpoint", "render.normals": "fd", "render.head_weight_threshold": 0.0,
-              "render.surface_refine": False, "train.batch_rays": 1024, "train.target_samples": 0},
+              "render.surface_refine": False, "train.batch_rays": 1024},
 }
 
 
@@ -67,7 +64,7 @@ def _rss_self_mb() -> float:
 
 def _final_chamfer(run_dir: Path, gt_mesh: str, resolution: int, n_samples: int) -> dict:
     """Chamfer of the final model at ``resolution``³ against ``gt_mesh`` (unit-sphere and world units)."""
-    from nepf_core.fit import load_model
+    from nepf_core.train import load_model
     from nepf_core.meshing import chamfer_against_gt
     from nepf_core.model import ModelFieldQuery
     import numpy as np
@@ -93,7 +90,7 @@ def _fit_real(spec: dict, run: Path, overrides: dict, callbacks=None) -> dict:
     import numpy as np
 
     from nepf_core.data.detect import load_scene
-    from nepf_core.fit import EvalTargets, fit, load_model
+    from nepf_core.train import EvalTargets, fit, load_model
     from nepf_core.jobs import build_config
 
     full = load_scene(spec["data_dir"], downscale=int(spec.get("downscale", 1)))
@@ -291,7 +288,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="real data: views 0, K, 2K, ... are held out for testing (default 8)")
     p.add_argument("--configs", default="fast,paper", help="comma-separated presets (paper, fast, tiny)")
     p.add_argument("--variants", default="adaptive", help="comma-separated: adaptive (default), all_on (everything on, no "
-                   "empty-space skipping), all_on_occ (everything on, occupancy-guided sampler)")
+                   "empty ray left out), naive (the brief's dense-grid reference rebuilt on the NePF model)")
     p.add_argument("--budget", type=float, default=600.0, help="training seconds per run (default 600)")
     p.add_argument("--budget-for", action="append", default=[], metavar="CONFIG=S",
                    help="per-config budget, e.g. paper=1800 (repeatable or comma-separated)")

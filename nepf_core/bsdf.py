@@ -30,6 +30,31 @@ Clamps (all documented here, see ../shared/GUIDE.md):
     * ``h = (l + v) / max(|l + v|, 1e-8)``: when l = -v the half vector is zero, h.v = 0.
       ``h.v`` itself is evaluated as ``|l + v| / 2`` (identical for unit l, v; symmetric and
       well-conditioned as l -> -v, where ``dot(h, v)`` loses reciprocity in float32).
+
+Two kinds (``BSDF_KINDS``, the ``kind`` argument of :func:`bsdf_eval` / :func:`shade`):
+
+* ``"paper"``: the form above (supplementary), the default everywhere today. Its
+  ``G / (4 n.v n.l) = 1 / (16 [..][..])`` is 1/16 at normal incidence where a standard
+  Smith GGX has 1/4: the lobe is about a quarter of a standard one.
+* ``"gltf"``: the glTF 2.0 metallic-roughness BRDF (specification, Appendix B), what three.js
+  and Blender render the exported GLB with::
+
+      c_diff = lerp(c, 0, m),   F0 = lerp(0.04, c, m),   alpha = r^2
+      F      = F0 + (1 - F0)(1 - |v.h|)^5
+      f      = (1 - F) c_diff / pi  +  F D V
+      D      = alpha^2 / (pi ((n.h)^2 (alpha^2 - 1) + 1)^2)
+      V      = G / (4 |n.l| |n.v|)
+             = 1 / ((|n.l| + sqrt(alpha^2 + (1 - alpha^2)(n.l)^2)) (|n.v| + sqrt(alpha^2 + (1 - alpha^2)(n.v)^2)))
+
+  ``V`` is the specification's *separable* Smith form (``G = G1(l) G1(v)``,
+  ``G1(x) = 2 |n.x| / (|n.x| + sqrt(alpha^2 + (1 - alpha^2)(n.x)^2))``).
+  three.js and the Khronos sample viewer use the height-correlated variant
+  (:func:`smith_visibility_correlated`), equal at normal incidence. The only departure from
+  the specification is the roughness floor: ``alpha = ALPHA_MIN + (1 - ALPHA_MIN) r^2``
+  (:func:`ggx_alpha_smooth`) instead of ``alpha = r^2`` (a delta at r = 0) or the paper
+  path's ``max(r^2, ALPHA_MIN)``, whose gradient in r is exactly 0 below r ~ 0.03 (a
+  near-mirror fit cannot move). The smooth floor keeps ``d alpha / d r = 2 (1 - ALPHA_MIN) r``
+  non-zero for every r > 0 and differs from ``r^2`` by at most ``ALPHA_MIN``.
 """
 
 from __future__ import annotations
@@ -143,8 +168,76 @@ def ggx_specular(albedo: Tensor, roughness: Tensor, metallic: Tensor,
     return F * ggx_distribution(nh, alpha) * specular_visibility(nl, nv, alpha)
 
 
+BSDF_KINDS = ("paper", "gltf")
+"""The BSDF forms :func:`bsdf_eval` can evaluate (see the module docstring)."""
+
+
+def ggx_alpha_smooth(roughness: Tensor) -> Tensor:
+    """``alpha = ALPHA_MIN + (1 - ALPHA_MIN) r^2``: glTF's ``r^2`` with a floor whose
+    gradient ``2 (1 - ALPHA_MIN) r`` stays non-zero for r > 0; ``[..., 1] -> [..., 1]``.
+
+    Worked values: r = 0 -> 1e-3, r = 1 -> 1, r = 0.5 -> 0.25075."""
+    return ALPHA_MIN + (1.0 - ALPHA_MIN) * roughness * roughness
+
+
+def smith_g1_gltf(cos: Tensor, alpha: Tensor) -> Tensor:
+    """glTF's ``G1(x) = 2 |n.x| / (|n.x| + sqrt(alpha^2 + (1 - alpha^2)(n.x)^2))`` (n.x >= 0).
+
+    Worked values: n.x = 1 -> 1 for every alpha; alpha = 1 -> 2 n.x / (n.x + 1)."""
+    c = cos.clamp_min(0.0)
+    a2 = alpha * alpha
+    return 2.0 * c / (c + torch.sqrt(a2 + (1.0 - a2) * c * c))
+
+
+def smith_visibility_gltf(nl: Tensor, nv: Tensor, alpha: Tensor) -> Tensor:
+    """``V = G1(l) G1(v) / (4 n.l n.v)`` of the glTF specification, in its cancelled form
+    ``1 / ((n.l + sqrt(a^2 + (1 - a^2) n.l^2)) (n.v + sqrt(a^2 + (1 - a^2) n.v^2)))``
+    (no division by a cosine; at most ``1 / alpha^2``). Worked value: n.l = n.v = 1 -> 1/4."""
+    nl = nl.clamp_min(0.0)
+    nv = nv.clamp_min(0.0)
+    a2 = alpha * alpha
+    return 1.0 / ((nl + torch.sqrt(a2 + (1.0 - a2) * nl * nl)) * (nv + torch.sqrt(a2 + (1.0 - a2) * nv * nv)))
+
+
+def smith_visibility_correlated(nl: Tensor, nv: Tensor, alpha: Tensor) -> Tensor:
+    """Height-correlated Smith visibility (three.js, Filament, the Khronos sample viewer):
+    ``V = 0.5 / (n.l sqrt(n.v^2 (1 - a^2) + a^2) + n.v sqrt(n.l^2 (1 - a^2) + a^2))``.
+    Equal to :func:`smith_visibility_gltf` at n.l = n.v = 1 (1/4). Not used by a kind; kept
+    to state the difference from what three.js renders (tests/test_bsdf_gltf.py)."""
+    nl = nl.clamp_min(0.0)
+    nv = nv.clamp_min(0.0)
+    a2 = alpha * alpha
+    den = nl * torch.sqrt(nv * nv * (1.0 - a2) + a2) + nv * torch.sqrt(nl * nl * (1.0 - a2) + a2)
+    return 0.5 / den.clamp_min(1e-12)
+
+
+def gltf_diffuse(albedo: Tensor, metallic: Tensor, fresnel: Tensor) -> Tensor:
+    """``(1 - F) c_diff / pi`` with ``c_diff = (1 - m) c``; ``[..., 3], [..., 1], [..., 3] -> [..., 3]``.
+
+    Worked value: c = 1, m = 0, F = 0.04 -> 0.96 / pi."""
+    return (1.0 - fresnel) * (1.0 - metallic) * albedo / math.pi
+
+
+def gltf_specular(fresnel: Tensor, nl: Tensor, nv: Tensor, nh: Tensor, alpha: Tensor) -> Tensor:
+    """``F D V`` (glTF, ``V`` separable Smith); -> ``[..., 3]``. Worked value at
+    n.l = n.v = n.h = 1: ``F / (4 pi alpha^2)``."""
+    return fresnel * ggx_distribution(nh, alpha) * smith_visibility_gltf(nl, nv, alpha)
+
+
+def _gltf_eval(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor, metallic: Tensor,
+               nl_c: Tensor, nv_c: Tensor, hv: Tensor, specular: bool) -> Tensor:
+    """The glTF BRDF at front-facing cosines (see :func:`bsdf_eval`). Without ``specular``
+    the lobe is dropped and the diffuse keeps its full weight: ``f = c_diff / pi``."""
+    if not specular:
+        return (1.0 - metallic) * lambert_diffuse(albedo)
+    F = fresnel_schlick(fresnel_f0(albedo, metallic), hv)
+    alpha = ggx_alpha_smooth(roughness)
+    nh = dot(n, half_vector(l, v)).clamp(0.0, 1.0)
+    return gltf_diffuse(albedo, metallic, F) + gltf_specular(F, nl_c, nv_c, nh, alpha)
+
+
 def bsdf_eval(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor, metallic: Tensor,
-              *, lambertian: bool = False, specular: bool = True) -> Tensor:
+              *, lambertian: bool = False, specular: bool = True, kind: str = "paper") -> Tensor:
     """Full BSDF ``f = (1 - m) f_d + f_s``, zero when ``l`` or ``v`` is below the surface.
 
     Args:
@@ -152,6 +245,8 @@ def bsdf_eval(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor
         albedo: ``[..., 3]`` in [0, 1]; roughness, metallic: ``[..., 1]`` in [0, 1].
         lambertian: use ``c/pi`` instead of the Disney diffuse (ablation).
         specular: include the GGX lobe (``False`` drops it for diffuse scenes).
+        kind: ``"paper"`` (Disney / Lambert diffuse + the supplementary's GGX) or ``"gltf"``
+            (glTF Appendix B: ``(1 - F) c_diff / pi + F D V``; ``lambertian`` is implied).
     Returns:
         ``[..., 3]`` BSDF value (1/sr), finite and non-negative for all unit inputs.
     """
@@ -167,6 +262,10 @@ def bsdf_eval(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor
     # sign, breaking reciprocity (f(l, v) != f(v, l)) in F and f_retro. |l + v| / 2 is
     # symmetric in (l, v) bit for bit and has bounded gradient.
     hv = (0.5 * (l + v).norm(dim=-1, keepdim=True)).clamp(0.0, 1.0)
+    if kind == "gltf":
+        return _gltf_eval(n, l, v, albedo, roughness, metallic, nl_c, nv_c, hv, specular) * front
+    if kind != "paper":
+        raise ValueError(f"unknown BSDF kind {kind!r} (one of {', '.join(BSDF_KINDS)})")
     if lambertian:
         f_d = lambert_diffuse(albedo)
     else:
@@ -179,12 +278,12 @@ def bsdf_eval(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor
 
 
 def shade(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor, metallic: Tensor,
-          intensity: Tensor, *, lambertian: bool = False, specular: bool = True) -> Tensor:
+          intensity: Tensor, *, lambertian: bool = False, specular: bool = True, kind: str = "paper") -> Tensor:
     """Outgoing radiance from one light: ``L = f(l, v) * I * max(n.l, 0)``.
 
     Shapes: as :func:`bsdf_eval`, ``intensity`` ``[..., 1]`` (or ``[..., 3]``) -> ``[..., 3]``.
     """
-    f = bsdf_eval(n, l, v, albedo, roughness, metallic, lambertian=lambertian, specular=specular)
+    f = bsdf_eval(n, l, v, albedo, roughness, metallic, lambertian=lambertian, specular=specular, kind=kind)
     return f * intensity * dot(n, l).clamp_min(0.0)
 
 

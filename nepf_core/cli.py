@@ -1,7 +1,8 @@
 """The ``nepf`` command line: fit, mesh, render, eval, export, make-scene, serve, worker, token.
 
 Service commands (serve, worker, token) are imported lazily from ``api``/``worker`` so the
-library never depends on FastAPI or Celery.
+library never depends on FastAPI or Celery: they come with ``pip install 'nepf[service]'``, and
+without it these commands say so.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ def cmd_fit(a) -> int:
         summary = run_job(a.data, a.out, preset=a.config, iters=a.iters, time_budget_s=a.time_budget,
                           device=a.device, callbacks=cb, resume=a.resume, export=not a.no_export,
                           texture_size=a.texture_size, max_faces=a.faces, test_dir=a.eval_test,
-                          gt_mesh=a.gt_mesh, gt_albedo=a.gt_albedo, log=bar.write)
+                          gt_mesh=a.gt_mesh, gt_albedo=a.gt_albedo, max_side=a.max_side, log=bar.write)
     finally:
         bar.close()
     print(json.dumps({k: summary[k] for k in ("status", "step", "total", "wall_s", "manifest")}, indent=2))
@@ -59,7 +60,7 @@ def cmd_fit(a) -> int:
 def cmd_mesh(a) -> int:
     import trimesh  # noqa: F401
 
-    from nepf_core.fit import load_model
+    from nepf_core.train import load_model
     from nepf_core.meshing import world_mesh
     from nepf_core.model import ModelFieldQuery
     model, cfg, state = load_model(a.run, a.device)
@@ -91,25 +92,26 @@ def _encode_channel(name: str, arr):
     return (img * 255 + 0.5).astype("uint8")
 
 
-def render_run(run, cameras, out, device="auto", stride: int = 1) -> dict:
-    """Render every camera of the dataset ``cameras`` with the run's model; see ``nepf render``."""
+def render_run(run, cameras, out, device="auto", stride: int = 1, max_side: int = 0) -> dict:
+    """Render every camera of the dataset ``cameras`` with the run's model, at the working
+    resolution ``max_side`` (0: full size); see ``nepf render``."""
     import numpy as np
     from PIL import Image
 
     from nepf_core.evaluate import CHANNELS, render_view
-    from nepf_core.fit import load_model
+    from nepf_core.train import load_model
     from nepf_core.rays import PixelSampler
     from nepf_core.reframe import load_held_out
     model, cfg, state = load_model(run, device)
     W = np.asarray(state["extra"]["world_from_norm"])
-    scene = load_held_out(cameras, W)
+    scene = load_held_out(cameras, W, max_side=max_side)
     dev = next(model.parameters()).device
     sampler = PixelSampler(scene, dev)
     rot = W[:3, :3] / float(np.cbrt(abs(np.linalg.det(W[:3, :3]))))
     out = Path(out)
     arrays = {c: [] for c in CHANNELS}
     for k in range(scene.n_views):
-        r = render_view(model, sampler, k, cfg.render, stride=stride, rotation=rot)
+        r = render_view(model, sampler, k, cfg.render, stride=stride, rotation=rot, shading=state["run_state"].shading())
         for c in CHANNELS:
             arrays[c].append(r[c])
             if c == "depth":
@@ -121,7 +123,7 @@ def render_run(run, cameras, out, device="auto", stride: int = 1) -> dict:
 
 
 def cmd_render(a) -> int:
-    info = render_run(a.run, a.cameras, a.out, a.device, a.stride)
+    info = render_run(a.run, a.cameras, a.out, a.device, a.stride, max_side=a.max_side)
     print(f"rendered {info['views']} views into {info['out']}")
     return 0
 
@@ -131,10 +133,10 @@ def cmd_eval(a) -> int:
 
     from nepf_core.data.detect import load_scene
     from nepf_core.evaluate import psnr, srgb_np, ssim
-    from nepf_core.fit import load_model
+    from nepf_core.train import load_model
     from nepf_core.model import ModelFieldQuery
     out_dir = Path(a.out) if a.out else Path(a.run) / "eval"
-    info = render_run(a.run, a.test, out_dir / "renders", a.device)
+    info = render_run(a.run, a.test, out_dir / "renders", a.device, max_side=a.max_side)
     scene = info["scene"]
     arr = np.load(out_dir / "renders" / "arrays.npz")
     pred, gt = srgb_np(arr["pbr"]), srgb_np(scene.images)
@@ -146,8 +148,7 @@ def cmd_eval(a) -> int:
         m = scene.masks
         res["psnr_masked"] = psnr(pred, gt, m)
         res["radiance_psnr_masked"] = psnr(rad, gt, m)
-        res["ssim_masked"] = float(np.mean([ssim(pred[i] * m[i][..., None], gt[i] * m[i][..., None])
-                                            for i in range(len(gt))]))
+        res["ssim_masked"] = float(np.nanmean([ssim(pred[i], gt[i], m[i]) for i in range(len(gt))]))
     if a.gt_mesh:
         from nepf_core.meshing import chamfer_against_gt
         model, cfg, state = load_model(a.run, a.device)
@@ -156,7 +157,8 @@ def cmd_eval(a) -> int:
         res["chamfer_world"], res["chamfer_unit_sphere"] = cw, cu
     res["conventions"] = ("psnr_*/ssim_*: the surface PBR colour; radiance_psnr_*: the radiance network's "
                           "volume-rendered colour. PSNR/SSIM on sRGB values in [0,1]; masked = GT foreground pixels only (SSIM: "
-                          "both images multiplied by the mask); Chamfer = mean of both directions, 100k samples")
+                          "the mean of the SSIM map over them); Chamfer = point-to-mesh, mean of both directions, "
+                          "100k samples per mesh")
     (out_dir).mkdir(parents=True, exist_ok=True)
     (out_dir / "eval.json").write_text(json.dumps(res, indent=2))
     print(json.dumps(res, indent=2))
@@ -169,6 +171,12 @@ def cmd_export(a) -> int:
                    mesh_resolution=a.resolution, previews=not a.no_previews)
     print(f"wrote {p}")
     return 0
+
+
+def _max_side_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--max-side", type=int, default=0, metavar="PX",
+                   help="working resolution: images whose long side exceeds PX are area-resampled to it "
+                        "at load, intrinsics scaled to match (default 0: full resolution)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -189,6 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--texture-size", type=int, default=None, choices=[256, 512, 1024, 2048],
                    help="baked texture size (default: 1024; 256 for tiny)")
     p.add_argument("--faces", type=int, default=None, help="face budget of the exported mesh (default 100k; 5k for tiny)")
+    _max_side_arg(p)
     _device_arg(p)
     p.set_defaults(fn=cmd_fit)
 
@@ -203,6 +212,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cameras", required=True, help="dataset folder whose cameras to render")
     p.add_argument("--out", required=True)
     p.add_argument("--stride", type=int, default=1, help="render every N-th pixel")
+    _max_side_arg(p)
     _device_arg(p)
     p.set_defaults(fn=cmd_render)
 
@@ -212,6 +222,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gt-mesh", default=None)
     p.add_argument("--resolution", type=int, default=256, help="marching-cubes resolution for Chamfer")
     p.add_argument("--out", default=None, help="folder for renders and eval.json (default RUN/eval)")
+    _max_side_arg(p)
     _device_arg(p)
     p.set_defaults(fn=cmd_eval)
 
@@ -236,9 +247,24 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+#: top-level modules of the ``service`` extra (pyproject.toml): without them serve/worker/token
+#: stop with an install hint instead of a traceback
+SERVICE_MODULES = frozenset({"fastapi", "starlette", "uvicorn", "python_multipart", "pydantic",
+                             "pydantic_settings", "sqlalchemy", "alembic", "psycopg", "celery",
+                             "kombu", "redis"})
+
+
 def _delegate(module: str, fn: str, argv: list[str]) -> int:
     import importlib
-    return int(getattr(importlib.import_module(module), fn)(list(argv)) or 0)
+    try:
+        return int(getattr(importlib.import_module(module), fn)(list(argv)) or 0)
+    except ModuleNotFoundError as exc:
+        missing = (exc.name or "").split(".")[0]
+        if missing not in SERVICE_MODULES:
+            raise
+        print(f"nepf: this command needs the NePF service, which is not installed (no module named "
+              f"{missing!r}); install nepf[service]: pip install 'nepf[service]'", file=sys.stderr)
+        return 2
 
 
 SERVICE_COMMANDS = {"serve": ("api.commands", "serve_main"), "worker": ("worker.commands", "worker_main"),

@@ -48,8 +48,6 @@ class TrainConfig:
     """Wall-clock period of held-out evaluation (0: only at the end, when a test set is given)."""
     eval_stride: int = 1
     """Render held-out views every N-th pixel (speed)."""
-    target_samples: int = 0
-    """Fast preset: adapt the ray batch to keep about this many shaded samples per step (0: fixed batch)."""
     max_nonfinite_steps: int = 50
     """Fail the run after this many skipped (non-finite) steps."""
     grad_clip: float = 0.0
@@ -65,18 +63,10 @@ class TrainConfig:
     """> 0: keep an exponential moving average of the parameters with this decay
     (:mod:`nepf_core.weight_average`) and use it for held-out evaluation and the saved model
     (render / export / eval); training uses the live weights. 0: off (the paper)."""
-    ema_half_life_s: float = 0.0
-    """> 0: the same average, but time-based: each update's decay is ``0.5 ** (dt / h)`` with
-    ``dt`` the step's training wall time, so runs at different step rates (adaptive or not, CPU or
-    GPU) average over the same seconds. Takes the place of ``ema_decay`` when set."""
-    adaptive: bool = True
-    """Let fit() leave out what the scene does not need (see report.json)."""
-    adaptive_metallic: bool = False
-    """With ``adaptive``: fade metallic to 0 when the highlights' colour says the surface is a
-    dielectric (:meth:`nepf_core.adaptivity.Adaptivity._decide_dielectric`). Off by default:
-    measured on spot_textured (300 s, seed 0) it read the scene right (a dielectric at step 501)
-    but the held-out PBR PSNR fell from 22.9 to 17.1 dB during the fade and ended at 22.28 dB
-    against 24.22 dB with metallic 0 from the start (docs/FAST.md, "A metallic decision")."""
+    adaptive: bool = False
+    """Let fit() leave out what the scene does not need (:mod:`nepf_core.train.rules`: drop the
+    GGX lobe, switch the Hessian term, stop at a plateau, leave empty rays out; every decision in
+    report.json). Off in ``paper`` (the paper trains every term for its whole schedule)."""
     plateau_patience: int = 3
     """Early stop after this many held-out evaluations without 0.1 dB gain (only when the
     iteration count was not fixed by the user)..."""
@@ -126,7 +116,9 @@ class NePFConfig:
 
 def paper() -> NePFConfig:
     """The supplementary's architecture: 8x256 SDF (softplus, see sdf_mlp) and photon (ReLU)
-    networks, 8x256 SIREN radiance and material networks, 512 rays, 64 + 64 samples."""
+    networks, 8x256 SIREN radiance and material networks, 512 rays, 64 + 64 samples, 250k steps
+    at learning rate 3e-4. No adaptivity: every loss term and the GGX lobe stay on for the
+    whole schedule."""
     return NePFConfig(name="paper")
 
 
@@ -139,34 +131,33 @@ def tiny() -> NePFConfig:
                           radiance=head, photon=HeadConfig(width=32, depth=2), material=head),
         render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1, hessian_fraction=0.05),
         train=TrainConfig(iters=100, batch_rays=128, lr=5e-4, warmup_steps=20, anneal_end=100, log_every=5,
-                          sync_every=50, sync_rays=512, checkpoint_every=50, eval_stride=2),
+                          sync_every=50, sync_rays=512, checkpoint_every=50, eval_stride=2, adaptive=True),
     )
 
 
 def fast() -> NePFConfig:
     """Grid SDF + small heads + finite-difference normals + an occupancy grid (rays that meet no
-    occupied cell leave the training batch; NeuS coarse + importance samples on the others: the
-    occupancy-guided sampler, ``render.sampler="occupancy"``, measured worse, docs/FAST.md), and three
-    albedo priors the paper does not have: unlit pixels do not train the albedo, a small
-    albedo smoothness term (docs/FAST.md, "Albedo in unlit regions"; the opt-in material
-    switches measured in "Why the spot_textured albedo is constant" are off here), and, only
-    once adaptivity has dropped the specular lobe, an albedo flatness term (docs/FAST.md, "What
-    fixed it"). L_surf is shaded at the SDF zero crossing of the max-weight section
-    (``render.surface_refine``, docs/FAST.md "Shading L_surf at the zero crossing")."""
+    occupied cell leave the training batch; NeuS coarse + importance samples on the others),
+    adaptivity on, a parameter average for evaluation and export, and three albedo priors the
+    paper does not have: unlit pixels do not train the albedo, a small albedo smoothness term
+    (docs/FAST.md, "Albedo in unlit regions"), and, only once adaptivity has dropped the specular
+    lobe, an albedo flatness term (docs/FAST.md, "What fixed it"). L_surf is shaded at the SDF
+    zero crossing of the max-weight section (``render.surface_refine``, docs/FAST.md "Shading
+    L_surf at the zero crossing"). Options tried for this preset and not adopted: docs/TRIED.md."""
     head = HeadConfig(width=64, depth=2, activation="relu", n_freqs_v=4)
     return NePFConfig(
         name="fast",
         model=ModelConfig(sdf_kind="grid", radiance=head, photon=HeadConfig(width=64, depth=2, n_freqs_x=2,
                                                                            use_feature=False),
                           material=HeadConfig(width=64, depth=2), occupancy_resolution=64),
-        render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1, sampler="neus",
+        render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1,
                             normals="fd", alpha_mode="sample", head_weight_threshold=1e-4,
                             eikonal_fraction=0.1, unlit_albedo_stopgrad=True, albedo_smooth_sigma=0.02,
                             surface_refine=True),
         loss=LossConfig(w_hessian=0.0, w_albedo_smooth=2e-4, w_albedo_flat=3e-6),
         train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,
                           anneal_end=2000, log_every=20, sync_every=500, checkpoint_every=1000,
-                          eval_every_s=60.0, eval_stride=1, target_samples=0, ema_decay=0.995),
+                          eval_every_s=60.0, eval_stride=1, ema_decay=0.995, adaptive=True),
     )
 
 

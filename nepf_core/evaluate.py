@@ -6,9 +6,9 @@ Conventions (stated wherever the numbers are reported):
 * Albedo PSNR: per-channel least-squares scale ``s_c = sum(gt_c p_c) / sum(p_c^2)`` over
   foreground pixels in linear space (albedo and light intensity share a scale), then
   PSNR of ``srgb(clip(s p))`` against ``srgb(gt)`` on the foreground.
-* Chamfer: ``(mean_a min_b |a-b| + mean_b min_a |a-b|) / 2`` with area-uniform surface
-  samples (100k per mesh by default), in world units and divided by the scene's
-  world scale for unit-sphere units.
+* SSIM: scikit-image's (Gaussian window, sigma 1.5); "masked" is the mean of the SSIM map
+  over foreground pixels (the images themselves are not masked), see :func:`ssim`.
+* Chamfer: point-to-mesh, :func:`nepf_core.meshing.chamfer_distance`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import torch
 
 from nepf_core.bsdf import diffuse_only_material
 from nepf_core.rays import PixelSampler
-from nepf_core.render.renderer import RenderConfig, render_rays
+from nepf_core.render.renderer import RenderConfig, Shading, render_rays
 
 CHANNELS = ("pbr", "radiance", "albedo", "roughness", "metallic", "normal", "light_dir",
             "light_intensity", "alpha", "depth")
@@ -33,13 +33,16 @@ def srgb_np(x: np.ndarray) -> np.ndarray:
 
 
 def render_view(model, sampler: PixelSampler, k: int, cfg: RenderConfig, *, stride: int = 1,
-                chunk: int = 2048, rotation: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                chunk: int = 2048, rotation: np.ndarray | None = None,
+                shading: Shading | None = None) -> dict[str, np.ndarray]:
     """Render every channel of view ``k``: dict of ``[H', W', C]`` float32 arrays.
 
     ``pbr`` is the surface PBR at the max-weight sample composited by the opacity
     ``alpha = sum w`` (over the background model when there is one). Normals and light
-    directions are rotated by ``rotation`` (3x3, normalised -> world) when given.
+    directions are rotated by ``rotation`` (3x3, normalised -> world) when given. ``shading``:
+    the run's shading model (``RunState.shading()``; None: ``cfg.specular``, no fade).
     """
+    shading = shading if shading is not None else Shading(specular=cfg.specular)
     rays = sampler.view_rays(k, stride)
     H = len(range(0, sampler.height, stride))
     W = len(range(0, sampler.width, stride))
@@ -48,7 +51,7 @@ def render_view(model, sampler: PixelSampler, k: int, cfg: RenderConfig, *, stri
     model.eval()
     for a in range(0, len(rays), chunk):
         rb = rays.slice(a, a + chunk)
-        out = render_rays(model, rb, cfg, train=False)
+        out = render_rays(model, rb, cfg, train=False, shading=shading)
         with torch.no_grad():
             alpha = out.weight_sum.clamp(0, 1)[:, None]
             pbr = out.rgb_surf * alpha
@@ -56,8 +59,8 @@ def render_view(model, sampler: PixelSampler, k: int, cfg: RenderConfig, *, stri
                 pbr = pbr + (1 - alpha) * model.background(rb.directions)
             s = out.surf
             albedo, metal = s["albedo"], s["metallic"]
-            if not cfg.specular:  # lobe dropped: shaded as a dielectric diffuse (metallic 0)
-                albedo, metal = diffuse_only_material(albedo, metal, cfg.diffuse_metal_weight)
+            if not shading.specular:  # lobe dropped: shaded as a dielectric diffuse (metallic 0)
+                albedo, metal = diffuse_only_material(albedo, metal, shading.diffuse_metal_weight)
             vals = {"pbr": pbr, "radiance": out.rgb_r, "albedo": albedo, "roughness": s["roughness"][:, None],
                     "metallic": metal[:, None], "normal": s["normal"], "light_dir": s["light_dir"],
                     "light_intensity": s["intensity"][:, None], "alpha": alpha, "depth": out.depth[:, None]}
@@ -81,11 +84,34 @@ def psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> fl
     return float(-10.0 * math.log10(max(float(err.mean()), 1e-10)))
 
 
-def ssim(pred: np.ndarray, gt: np.ndarray) -> float:
-    """SSIM of two ``[H, W, 3]`` images in [0, 1] (scikit-image, Gaussian window)."""
+SSIM_SIGMA = 1.5
+"""Gaussian window of SSIM (Wang et al. 2004): 11 taps, so the map's outer 5 pixels are unreliable."""
+SSIM_BORDER = int(3.5 * SSIM_SIGMA + 0.5)
+
+
+def ssim(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """SSIM of two ``[H, W, 3]`` images in [0, 1] (scikit-image, Gaussian window, sigma 1.5).
+
+    The SSIM map ``S(p) = (2 mu_x mu_y + C1)(2 s_xy + C2) / ((mu_x^2 + mu_y^2 + C1)(s_x^2 + s_y^2 + C2))``
+    (``C1 = 0.01^2``, ``C2 = 0.03^2``, local Gaussian-weighted moments per channel) is averaged over
+    the pixels at least ``SSIM_BORDER`` from the frame edge (scikit-image's full-frame value)
+    and, with ``mask [H, W]`` bool, over those of them in the mask only. The images are not
+    multiplied by the mask: their shared black background would score ~1 and pull the mean up,
+    the more so the smaller the object. NaN when no pixel is left.
+    """
     from skimage.metrics import structural_similarity
-    return float(structural_similarity(pred, gt, channel_axis=-1, data_range=1.0, gaussian_weights=True,
-                                       sigma=1.5, use_sample_covariance=False))
+    kw = dict(channel_axis=-1, data_range=1.0, gaussian_weights=True, sigma=SSIM_SIGMA,
+              use_sample_covariance=False)
+    if mask is None:
+        return float(structural_similarity(pred, gt, **kw))
+    _, smap = structural_similarity(pred, gt, full=True, **kw)  # [H, W, 3]
+    b = SSIM_BORDER
+    inner = np.zeros(mask.shape, dtype=bool)
+    inner[b:mask.shape[0] - b, b:mask.shape[1] - b] = True
+    sel = mask.astype(bool) & inner
+    if not sel.any():
+        return float("nan")
+    return float(smap[sel].mean())
 
 
 def albedo_psnr_aligned(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple[float, np.ndarray]:
@@ -98,14 +124,3 @@ def albedo_psnr_aligned(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> t
     scale = (p * g).sum(0) / np.maximum((p * p).sum(0), 1e-12)
     aligned = np.clip(pred * scale, 0, 1)
     return psnr(srgb_np(aligned)[mask], srgb_np(gt)[mask]), scale
-
-
-def chamfer_distance(mesh_a, mesh_b, n_samples: int = 100_000, seed: int = 0) -> float:
-    """Symmetric mean Chamfer distance between two trimesh meshes (same units as vertices)."""
-    import trimesh
-    from scipy.spatial import cKDTree
-    pa = trimesh.sample.sample_surface(mesh_a, n_samples, seed=seed)[0]
-    pb = trimesh.sample.sample_surface(mesh_b, n_samples, seed=seed + 1)[0]
-    da = cKDTree(pb).query(pa, workers=-1)[0]
-    db = cKDTree(pa).query(pb, workers=-1)[0]
-    return float(0.5 * (da.mean() + db.mean()))

@@ -8,7 +8,11 @@ Contract (stable; the worker codes against it):
 * Raises ``nepf_core.data.DatasetError`` for bad input (before any training).
 * Resumes from ``run_dir/checkpoints/latest.pt`` when ``resume`` and it exists.
 * Returns a summary ``{"status": "succeeded"|"cancelled"|"stopped_early", "step", "total",
-  "wall_s", "manifest": path of run_dir/manifest.json, "report": {...}}``.
+  "wall_s", "manifest": "manifest.json" (relative to run_dir, or None), "report": {...},
+  "working_size": [W, H] the images were trained at}``; also written to ``run_dir/summary.json``,
+  which the service serves, so it holds no absolute path.
+* ``max_side`` (0/None: full size) is the working resolution of the training and held-out
+  views: larger images are area-resampled at load, intrinsics scaled to match.
 * When ``callbacks.should_stop()`` turns True, training stops at the next step, a final
   checkpoint and the export of the partial model are still written, and the status is
   ``"cancelled"``.
@@ -68,22 +72,22 @@ def run_job(data_dir, run_dir, *, preset: str = "fast", iters=None, time_budget_
             device: str = "auto", callbacks: FitCallbacks | None = None, resume: bool = True,
             export: bool = True, texture_size: int | None = None, max_faces: int | None = None,
             mesh_resolution: int | None = None, test_dir=None, gt_mesh=None, gt_albedo=None,
-            overrides: dict | None = None, log=print) -> dict:
+            overrides: dict | None = None, max_side: int | None = None, log=print) -> dict:
     """Load ``data_dir``, fit, and export into ``run_dir``; see the module docstring."""
     from nepf_core.data.detect import load_scene
-    from nepf_core.fit import EvalTargets, fit
+    from nepf_core.train import EvalTargets, fit
 
     cb = callbacks or FitCallbacks()
     run = Path(run_dir)
     run.mkdir(parents=True, exist_ok=True)
     cb.progress({"step": 0, "total": 0, "fraction": 0.0, "stage": "loading", "eta_s": None, "wall_s": 0.0})
-    scene = load_scene(data_dir, split="train")
+    scene = load_scene(data_dir, split="train", max_side=max_side)
     cfg = build_config(preset, iters, overrides)
     targets = None
     if test_dir is not None:
         import numpy as np
         from nepf_core.reframe import load_held_out
-        test_scene = load_held_out(test_dir, scene.world_from_norm)
+        test_scene = load_held_out(test_dir, scene.world_from_norm, max_side=max_side)
         alb = None
         if gt_albedo is not None:
             alb = np.load(gt_albedo)["albedo"].astype("float32") if str(gt_albedo).endswith(".npz") else gt_albedo
@@ -101,7 +105,8 @@ def run_job(data_dir, run_dir, *, preset: str = "fast", iters=None, time_budget_
         manifest_path = export_run(run, device=device, texture_size=texture_size, max_faces=max_faces,
                                    mesh_resolution=mesh_resolution, log=log)
     summary = {"status": res.status, "step": res.step, "total": res.total, "wall_s": res.wall_s,
-               "manifest": None if manifest_path is None else str(manifest_path), "report": res.report,
+               "manifest": None if manifest_path is None else Path(manifest_path).relative_to(run).as_posix(),
+               "working_size": [scene.width, scene.height], "report": res.report,
                "last_test": res.last_test, "nonfinite_steps": res.nonfinite_steps}
     (run / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     if manifest_path is not None:
@@ -113,20 +118,18 @@ def run_job(data_dir, run_dir, *, preset: str = "fast", iters=None, time_budget_
 def export_run(run_dir, *, device: str = "auto", texture_size: int = 1024, max_faces: int = 100_000,
                mesh_resolution: int = 256, previews: bool = True, log=print) -> Path:
     """Export the latest checkpoint of ``run_dir`` (GLB, textures, light field, previews, manifest)."""
-    import torch
-
     from nepf_core.export import export_asset
-    from nepf_core.fit import load_model
     from nepf_core.model import ModelFieldQuery
+    from nepf_core.train import load_model
 
-    model, cfg, state = load_model(run_dir, device)
+    model, _cfg, state = load_model(run_dir, device)
     world_from_norm = state["extra"].get("world_from_norm")
     if world_from_norm is None:
         raise RuntimeError(f"{run_dir}: checkpoint has no world_from_norm")
     import numpy as np
     dev = next(model.parameters()).device
-    export_asset(ModelFieldQuery(model, specular=cfg.render.specular,
-                                 diffuse_metal_weight=cfg.render.diffuse_metal_weight,
-                                 metallic_scale=cfg.render.metallic_scale), np.asarray(world_from_norm), run_dir, texture_size=texture_size,
-                 max_faces=max_faces, mesh_resolution=mesh_resolution, device=dev, log=log, previews=previews)
+    # the material as the surface was shaded at the end of the run (a dropped lobe: metallic 0)
+    export_asset(ModelFieldQuery(model, shading=state["run_state"].shading()), np.asarray(world_from_norm), run_dir,
+                 texture_size=texture_size, max_faces=max_faces, mesh_resolution=mesh_resolution, device=dev, log=log,
+                 previews=previews)
     return Path(run_dir) / "manifest.json"

@@ -7,11 +7,9 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
               (ablation: supervise by L_gt instead of L_r)
     L_vol   = lambda2 * mean | srgb(L_vol) - srgb(L_gt) |
     L_eik   = w_eik * mean_q | |grad f| - 1 |      (q: the sample's ray weight, 1 unless thinned)
-    L_hess  = w_hess * mean sum_i |H_ii f|
+    L_hess  = w_hess * mean |H f|_F      (Frobenius norm of the SDF Hessian, fields/gradients.py)
     L_light = w_light * (l3 |var x - var I| + l4 |var n - var l| + l5 |var x - var l|)
     L_asm   = w_albedo_smooth * mean | c(x*) - c(x* + eps) |   (albedo smoothness prior, off in paper)
-    L_met   = w_metallic * mean m(x*)                           (dielectric prior, off in paper)
-    L_fill  = w_albedo_fill * mean_unlit | c(x*) - sg(mean_lit c(x*)) |   (unobserved albedo prior, off in paper)
     L_flat  = w_albedo_flat * mean_lit | Y(c) / sg(mean_lit Y(c)) - 1 |, Y = channel mean   (lobe off only)
     L_mask  = w_mask * BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)
 
@@ -57,13 +55,6 @@ class LossConfig:
     """Albedo smoothness prior at the max-weight points (needs ``RenderConfig.albedo_smooth_sigma
     > 0``); not in the paper. Unlit regions carry no albedo information, so without a prior
     their albedo is whatever the network extrapolates; this lets neighbouring lit albedo fill it."""
-    albedo_smooth_unlit_only: bool = False
-    """Apply the albedo smoothness prior only on unlit rays (``RayBatch.unlit``), where the images
-    say nothing about the albedo; lit rays keep the texture the data asks for."""
-    w_albedo_fill: float = 0.0
-    """Unlit surface rays pull their albedo toward the batch's mean lit albedo (stop-grad): where
-    the light never reaches, no view constrains the albedo, and without a prior the material
-    network extrapolates the dark radiance features to a black albedo. Needs ``RayBatch.unlit``."""
     w_albedo_flat: float = 0.0
     """Lobe off only (``compute_losses(..., specular=False)``): lit surface rays pull the
     luminance of their albedo toward the batch's mean (stop-grad), relative L1. Diffuse-only
@@ -72,13 +63,8 @@ class LossConfig:
     them; this term gives it to the light (slow variation is illumination: the Retinex
     assumption). Both this and the colour terms are L1, so texture stays in the albedo only where
     the colour terms' gradient on the albedo is larger, and that gradient carries the shading
-    ``I (n.l) / pi`` and the sRGB slope: a weight merely under ``lambda2_vol`` is not enough. At
-    3e-5 a textured Lambertian torus lost its held-out PBR after the lobe drop (29.85 -> 17.35
-    dB); ``fast`` uses 3e-6 (docs/FAST.md, "What fixed it")."""
-    w_metallic: float = 0.0
-    """Dielectric prior: mean metallic at the max-weight points of surface rays; not in the paper.
-    Metallic also darkens the diffuse lobe (``(1 - m) f_d``), so without a prior a dark texture
-    can be explained as metal instead of as dark albedo (docs/FAST.md, spot_textured)."""
+    ``I (n.l) / pi`` and the sRGB slope: the weight must stay well under ``lambda2_vol`` times
+    that slope, or the texture moves into the light (docs/FAST.md, "What fixed it")."""
     w_mask: float = 0.1
     """Mask BCE weight (NeuS's value); only applied when the scene has masks."""
     color_space: str = "srgb"
@@ -161,19 +147,10 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
         L["loss_light"] = zero
     if cfg.w_albedo_smooth > 0 and "albedo_jitter" in out.surf:
         keep = surf_rays > 0.5
-        if cfg.albedo_smooth_unlit_only and rays.unlit is not None:
-            keep = keep & rays.unlit
         diff = (out.surf["albedo"] - out.surf["albedo_jitter"]).abs().mean(-1)
         L["loss_albedo_smooth"] = (diff * keep).sum() / keep.sum().clamp_min(1.0)
     else:
         L["loss_albedo_smooth"] = zero
-    L["loss_albedo_fill"] = zero
-    if cfg.w_albedo_fill > 0 and rays.unlit is not None:
-        on_surf = surf_rays > 0.5
-        lit, dark = on_surf & ~rays.unlit, on_surf & rays.unlit
-        if lit.any() and dark.any():
-            ref = out.surf["albedo"][lit].detach().mean(0)
-            L["loss_albedo_fill"] = (out.surf["albedo"][dark] - ref).abs().mean()
     L["loss_albedo_flat"] = zero
     if cfg.w_albedo_flat > 0 and not specular:
         lit = surf_rays > 0.5
@@ -182,16 +159,10 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
         if lit.sum() >= 2:
             lum = out.surf["albedo"][lit].mean(-1)
             L["loss_albedo_flat"] = (lum / lum.detach().mean().clamp_min(1e-4) - 1.0).abs().mean()
-    if cfg.w_metallic > 0:
-        keep = surf_rays > 0.5
-        L["loss_metallic"] = (out.surf["metallic"].reshape(-1) * keep).sum() / keep.sum().clamp_min(1.0)
-    else:
-        L["loss_metallic"] = zero
     L["loss_mask"] = (mask_bce(out.weight_sum, rays.mask, rays.weight)
                       if (use_mask and rays.mask is not None and cfg.w_mask > 0) else zero)
     L["loss"] = (cfg.w_r * L["loss_r"] + cfg.lambda1_surf * L["loss_surf"] + cfg.lambda2_vol * L["loss_vol"]
                  + cfg.w_eikonal * L["loss_eik"] + cfg.w_hessian * L["loss_hess"]
                  + cfg.w_light * L["loss_light"] + cfg.w_mask * L["loss_mask"]
-                 + cfg.w_albedo_smooth * L["loss_albedo_smooth"] + cfg.w_metallic * L["loss_metallic"]
-                 + cfg.w_albedo_fill * L["loss_albedo_fill"] + cfg.w_albedo_flat * L["loss_albedo_flat"])
+                 + cfg.w_albedo_smooth * L["loss_albedo_smooth"] + cfg.w_albedo_flat * L["loss_albedo_flat"])
     return L

@@ -30,14 +30,10 @@ class ModelConfig:
     init_variance: float = 0.3
     """NeuS deviation init: inv_s = exp(10 * 0.3) = 20."""
     background: bool = False
-    """Background radiance B(d); switched on by fit() for scenes without masks."""
+    """Background radiance B(d). fit() decides it from the data (on for scenes without masks,
+    :mod:`nepf_core.train.rules.masks`) and builds the model with its run state's choice."""
     occupancy_resolution: int = 0
     """Occupancy grid resolution (0: none)."""
-    light_init_albedo: float = 0.0
-    """> 0: fit() starts the photon intensity at ``I0 = pi * q99 / light_init_albedo`` (q99:
-    99th percentile of the foreground pixels' max channel, linear), so the brightest pixels
-    need an albedo of about ``light_init_albedo`` under head-on light and the albedo sigmoid
-    starts far from saturation (:func:`nepf_core.fit.init_light_to_data`). 0: ``I0 = 3``."""
 
 
 def build_sdf(cfg: ModelConfig) -> nn.Module:
@@ -94,17 +90,14 @@ class NePFModel(nn.Module):
 class ModelFieldQuery:
     """Adapter from :class:`NePFModel` to the export's FieldQuery protocol (chunked)."""
 
-    def __init__(self, model: NePFModel, chunk: int = 65536, *, specular: bool = True,
-                 diffuse_metal_weight: float = 0.0, metallic_scale: float = 1.0) -> None:
-        """``specular=False``: the run dropped the GGX lobe, so :meth:`material` returns the
-        material it was shaded with, metallic 0 (:func:`nepf_core.bsdf.diffuse_only_material`
-        with ``diffuse_metal_weight``, the run's ``render.diffuse_metal_weight``).
-        ``metallic_scale``: the run's ``render.metallic_scale`` (metallic ``s m``, as shaded)."""
+    def __init__(self, model: NePFModel, chunk: int = 65536, *, shading=None) -> None:
+        """``shading``: the run's :class:`nepf_core.render.renderer.Shading`. Without the GGX
+        lobe :meth:`material` returns the material the surface was shaded with, metallic 0
+        (:func:`nepf_core.bsdf.diffuse_only_material` with ``shading.diffuse_metal_weight``);
+        None: the network's material as it is."""
         self.model = model
         self.chunk = chunk
-        self.specular = specular
-        self.diffuse_metal_weight = diffuse_metal_weight
-        self.metallic_scale = metallic_scale
+        self.shading = shading
 
     def _chunks(self, fn, *xs):
         outs = [fn(*[x[i:i + self.chunk] for x in xs]) for i in range(0, xs[0].shape[0], self.chunk)]
@@ -120,11 +113,9 @@ class ModelFieldQuery:
 
     def material(self, x: Tensor, n: Tensor):
         albedo, rough, metal = self._chunks(self.model.query_material, x, n)
-        if self.metallic_scale != 1.0:
-            metal = metal * self.metallic_scale
-        if not self.specular:
+        if self.shading is not None and not self.shading.specular:
             from nepf_core.bsdf import diffuse_only_material
-            albedo, metal = diffuse_only_material(albedo, metal, self.diffuse_metal_weight)
+            albedo, metal = diffuse_only_material(albedo, metal, self.shading.diffuse_metal_weight)
         return albedo, rough, metal
 
     def light(self, x: Tensor, n: Tensor):

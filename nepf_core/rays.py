@@ -36,7 +36,7 @@ class RayBatch:
     """``[R]`` bool, training only: the target pixel is unlit (see ``unlit_threshold``)."""
     weight: Tensor | None = None
     """``[R]`` float, training only: importance weight of the ray in per-ray means of the
-    mask loss (``1 / p_keep`` after :meth:`Adaptivity.thin_empty_rays`; None: all 1)."""
+    mask loss (``1 / p_keep`` after :mod:`nepf_core.train.rules.empty_rays`; None: all 1)."""
 
     def __len__(self) -> int:
         return int(self.origins.shape[0])

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # Install everything NePF needs on a fresh Debian 12 machine (Python 3.11), idempotently:
 #   Debian packages (headless EGL/OSMesa for previews, Chromium for browser tests, Redis,
-#   PostgreSQL client/server when missing), a virtual environment .venv with the package,
-#   torch pinned to 2.13.0 (CPU wheel), the test tools, and the npm packages (web viewer
-#   build, Khronos glTF validator).
+#   PostgreSQL client/server when missing), a virtual environment .venv with the library, the
+#   service and the test tools (`pip install -e ".[service,test]"`), torch at the version pinned
+#   in pyproject.toml, and the npm packages (web viewer build, Khronos glTF validator).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)
@@ -26,8 +26,10 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 .venv/bin/python -m pip install -q --upgrade pip setuptools wheel
-.venv/bin/python -m pip install -q "torch==2.13.0"
-.venv/bin/python -m pip install -q -e ".[test]"
+# torch first, at the one pin in pyproject.toml (the Dockerfile reads the same line)
+TORCH_SPEC=$(.venv/bin/python -c 'import tomllib; deps = tomllib.load(open("pyproject.toml", "rb"))["project"]["dependencies"]; print(next(d for d in deps if d.startswith("torch")))')
+.venv/bin/python -m pip install -q "$TORCH_SPEC"
+.venv/bin/python -m pip install -q -e ".[service,test]"
 
 echo "== npm packages"
 while read -r dir; do

@@ -1,4 +1,4 @@
-"""Helpers for the service tests: tiny datasets, zips, a fake ``run_job``, server/worker/Redis
+"""Helpers for the service tests: tiny datasets, zips, a fake pipeline, server/worker/Redis
 processes started on free loopback ports and stopped by PID."""
 
 from __future__ import annotations
@@ -19,6 +19,8 @@ from typing import Callable, Optional
 
 import numpy as np
 from PIL import Image
+
+from nepf_core.pipeline import JobRequest
 
 REPO = Path(__file__).resolve().parent.parent
 TESTS = Path(__file__).resolve().parent
@@ -117,13 +119,13 @@ def real_scene_zip(tmp: Path) -> bytes:
 
 
 #: environment for workers running the real pipeline in tests: CPU, small export
-REAL_PIPELINE_ENV = {"NEPF_RUN_JOB": "nepf_core.jobs:run_job", "NEPF_DEVICE": "cpu",
+REAL_PIPELINE_ENV = {"NEPF_PIPELINE": "nepf_core.pipeline:run_pipeline", "NEPF_DEVICE": "cpu",
                      "NEPF_EXPORT_TEXTURE_SIZE": "64", "NEPF_EXPORT_MESH_RESOLUTION": "32",
                      "NEPF_EXPORT_MAX_FACES": "2000", "OMP_NUM_THREADS": "2"}
 REAL_ITERS = 4
 
 
-# ------------------------------------------------------------------------ fake run_job
+# ------------------------------------------------------------------------ fake pipeline
 def _glb_bytes() -> bytes:
     """A minimal valid glTF-binary (one empty scene)."""
     js = json.dumps({"asset": {"version": "2.0"}, "scenes": [{"nodes": []}], "scene": 0}).encode()
@@ -140,16 +142,16 @@ def _write_atomic(path: Path, text: str) -> None:
     os.replace(tmp, path)
 
 
-def fake_run_job(data_dir, run_dir, *, preset="fast", iters=None, time_budget_s=None, device="auto",
-                 callbacks=None, resume=True, **_kw) -> dict:
-    """Stands in for ``nepf_core.jobs.run_job`` in service tests: same contract, no torch.
+def fake_pipeline(request: JobRequest) -> dict:
+    """Stands in for ``nepf_core.pipeline.run_pipeline`` in service tests (``NEPF_PIPELINE=
+    service_fixtures:fake_pipeline``): same contract, no torch.
 
     Steps sleep ``NEPF_FAKE_STEP_S``; a checkpoint (``checkpoints/latest.json``) every 5 steps;
     metrics.jsonl with train/sync/test records; export (asset.glb, previews, manifest) at the end.
     """
-    run = Path(run_dir)
+    run, data_dir, callbacks, resume = Path(request.run_dir), request.data_dir, request.callbacks, request.resume
     (run / "checkpoints").mkdir(parents=True, exist_ok=True)
-    total = int(iters or 40)
+    total = int(request.iters or 40)
     step_s = float(os.environ.get("NEPF_FAKE_STEP_S", "0.05"))
     ck = run / "checkpoints" / "latest.json"
     start = 0
@@ -194,10 +196,6 @@ def fake_run_job(data_dir, run_dir, *, preset="fast", iters=None, time_budget_s=
         f.write(f"{os.getpid()} {status} {step}\n")
     return {"status": status, "step": step, "total": total, "wall_s": time.time() - t0,
             "manifest": str(run / "manifest.json"), "report": {"decisions": []}}
-
-
-def failing_run_job(data_dir, run_dir, **_kw) -> dict:
-    raise RuntimeError("boom: the fake pipeline failed")
 
 
 # ------------------------------------------------------------------------ processes

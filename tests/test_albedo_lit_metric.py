@@ -6,10 +6,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
-import nepf_core.fit as fitmod
+import nepf_core.train.evaluation as evalmod
 from nepf_core.config import tiny
 from nepf_core.evaluate import albedo_psnr_aligned
-from nepf_core.fit import EvalTargets, evaluate_test
+from nepf_core.train import EvalTargets, evaluate_test
 
 
 def test_lit_albedo_psnr_ignores_pixels_the_light_never_reaches(monkeypatch):
@@ -24,9 +24,9 @@ def test_lit_albedo_psnr_ignores_pixels_the_light_never_reaches(monkeypatch):
     pred[:, :, : W // 2] = 0.05                          # wrong albedo where nothing is observable
     test = SimpleNamespace(images=img, masks=mask, n_views=1)
 
-    monkeypatch.setattr(fitmod, "PixelSampler", lambda scene, device: None)
-    monkeypatch.setattr(fitmod, "render_view",
-                        lambda model, sampler, k, rcfg, stride: {"pbr": img[k], "radiance": img[k],
+    monkeypatch.setattr(evalmod, "PixelSampler", lambda scene, device: None)
+    monkeypatch.setattr(evalmod, "render_view",
+                        lambda model, sampler, k, rcfg, stride, shading: {"pbr": img[k], "radiance": img[k],
                                                                  "albedo": pred[k]})
     rec = evaluate_test(None, tiny(), EvalTargets(test_scene=test, gt_albedo=gt_alb), "cpu", np.eye(4),
                         stride=1, with_chamfer=False)

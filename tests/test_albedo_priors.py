@@ -49,9 +49,8 @@ def _model_and_rays(unlit: bool):
     return cfg, model, rays
 
 
-def _albedo_and_roughness_grads(unlit: bool, material_stopgrad: bool = False):
+def _albedo_and_roughness_grads(unlit: bool):
     cfg, model, rays = _model_and_rays(unlit)
-    cfg.render.unlit_material_stopgrad = material_stopgrad
     out = render_rays(model, rays, cfg.render, train=True)
     assert float(out.weight_sum.detach().mean()) > 0.5   # the rays hit the init sphere
     lc = LossConfig(w_r=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0, w_mask=0.0)
@@ -66,38 +65,6 @@ def test_unlit_rays_do_not_train_the_albedo_but_still_train_the_rest():
     albedo_g, rm_g, photon_g = _albedo_and_roughness_grads(unlit=True)
     assert albedo_g == 0.0
     assert rm_g > 0.0 and photon_g > 0.0
-
-
-def test_unlit_material_stopgrad_blocks_roughness_and_metallic_too_but_not_the_light():
-    albedo_g, rm_g, photon_g = _albedo_and_roughness_grads(unlit=True, material_stopgrad=True)
-    assert albedo_g == 0.0 and rm_g == 0.0
-    assert photon_g > 0.0
-    # on lit rays the switch changes nothing: every material output is trained
-    albedo_g, rm_g, photon_g = _albedo_and_roughness_grads(unlit=False, material_stopgrad=True)
-    assert albedo_g > 0.0 and rm_g > 0.0 and photon_g > 0.0
-
-
-def test_light_init_from_data_hand_value():
-    from types import SimpleNamespace
-
-    from nepf_core.fit import init_light_to_data
-    # foreground max channels 0.00 .. 0.99 (q99 = 0.9801, see above); background 5.0 is ignored
-    vals = np.arange(100) / 100.0
-    img = np.zeros((1, 10, 20, 3))
-    img[0, :, :10, 2] = vals.reshape(10, 10)
-    img[0, :, 10:, :] = 5.0
-    mask = np.zeros((1, 10, 20))
-    mask[0, :, :10] = 1.0
-    scene = SimpleNamespace(images=img, masks=mask, n_views=1)
-    model = NePFModel(tiny().model)
-    i0 = init_light_to_data(model, scene, albedo=0.5)
-    # subsampled every 7th value: 0, 0.07, ..., 0.98 -> q99 by linear interpolation
-    sub = vals[::7]
-    expected = np.pi * np.quantile(sub, 0.99) / 0.5
-    assert abs(i0 - expected) < 1e-9 and 5.5 < i0 < 6.3
-    # a zero raw output of the photon network now gives exactly that intensity
-    I = torch.nn.functional.softplus(model.photon.intensity_bias)
-    assert abs(I.item() - expected) < 1e-4 * expected
 
 
 def test_lit_rays_train_the_albedo():
@@ -132,11 +99,6 @@ def test_albedo_smoothness_loss_hand_value_and_renderer_output():
     expected = ((0.4 / 3) + 0.0 + 0.9) / 3
     assert abs(L["loss_albedo_smooth"].item() - expected) < 1e-6
     assert abs(L["loss"].item() - 2.0 * expected) < 1e-6
-    # only on unlit rays: rays 0 and 3 are unlit; ray 3 is background, so only ray 0 (diff 0.4/3) counts
-    rays.unlit = torch.tensor([True, False, False, True])
-    lc.albedo_smooth_unlit_only = True
-    assert abs(compute_losses(out, rays, lc, use_mask=True)["loss_albedo_smooth"].item() - 0.4 / 3) < 1e-6
-    rays.unlit = None
 
     cfg, model, rays = _model_and_rays(unlit=False)
     cfg.render.albedo_smooth_sigma = 0.02
@@ -144,47 +106,6 @@ def test_albedo_smoothness_loss_hand_value_and_renderer_output():
     assert out.surf["albedo_jitter"].shape == (len(rays), 3)
     assert not torch.equal(out.surf["albedo_jitter"], out.surf["albedo"])
     assert "albedo_jitter" not in render_rays(model, rays, cfg.render, train=False).surf
-
-
-def test_metallic_prior_hand_value_and_gradient_sign():
-    """L_met = mean metallic over surface rays; its gradient pushes metallic down."""
-    R = 4
-    metallic = torch.tensor([0.2, 0.8, 0.5, 1.0], requires_grad=True)
-    out = _surface_output(R, metallic=metallic)
-    mask = torch.tensor([1.0, 1.0, 1.0, 0.0])    # background ray: not counted
-    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=torch.zeros(R, 3), mask=mask)
-    lc = _prior_only(w_metallic=0.5)
-    L = compute_losses(out, rays, lc, use_mask=True)
-    expected = (0.2 + 0.8 + 0.5) / 3
-    assert abs(L["loss_metallic"].item() - expected) < 1e-6
-    assert abs(L["loss"].item() - 0.5 * expected) < 1e-6
-    L["loss"].backward()
-    assert torch.allclose(metallic.grad, torch.tensor([0.5 / 3, 0.5 / 3, 0.5 / 3, 0.0]))
-    # off by default: the term is zero and adds nothing
-    assert compute_losses(out, rays, LossConfig(), use_mask=True)["loss_metallic"].item() == 0.0
-
-
-def test_albedo_fill_pulls_unlit_rays_toward_the_mean_lit_albedo():
-    R = 5
-    albedo = torch.tensor([[0.2, 0.4, 0.6], [0.4, 0.6, 0.8], [0.0, 0.0, 0.0], [0.9, 0.9, 0.9], [0.5, 0.5, 0.5]],
-                          requires_grad=True)
-    out = _surface_output(R, albedo=albedo)
-    mask = torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0])            # the last ray is background
-    unlit = torch.tensor([False, False, True, True, True])
-    rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=torch.zeros(R, 3), mask=mask, unlit=unlit)
-    lc = _prior_only(w_albedo_fill=3.0)
-    L = compute_losses(out, rays, lc, use_mask=True)
-    ref = torch.tensor([0.3, 0.5, 0.7])                        # mean of the two lit rays
-    expected = ((torch.tensor([0.0, 0.0, 0.0]) - ref).abs().sum() + (torch.tensor([0.9] * 3) - ref).abs().sum()) / 6
-    assert abs(L["loss_albedo_fill"].item() - expected.item()) < 1e-6
-    assert abs(L["loss"].item() - 3.0 * expected.item()) < 1e-6
-    L["loss"].backward()
-    g = albedo.grad
-    assert torch.all(g[:2] == 0) and torch.all(g[4] == 0)      # lit rays (reference is stop-grad) and background
-    assert torch.all(g[2] < 0) and torch.all(g[3] > 0)         # the dark one brightens, the bright one darkens
-    # no unlit flags (e.g. evaluation batches): the term is zero
-    rays.unlit = None
-    assert compute_losses(out, rays, lc, use_mask=True)["loss_albedo_fill"].item() == 0.0
 
 
 def test_albedo_flat_pulls_lit_luminance_toward_the_batch_mean_only_without_the_lobe():

@@ -12,9 +12,10 @@ from fastapi.testclient import TestClient
 from sqlalchemy import update
 
 from api.auth import create_token, make_ticket
-from api.db import Job, dispose_engines
 from api.main import create_app
 from api.settings import Settings
+from jobstore.engine import dispose_engines
+from jobstore.models import Job
 from service_fixtures import dataset_zip_bytes
 
 
@@ -151,7 +152,7 @@ def test_health_and_ready(env):
 def test_local_token_is_created_once_and_tokens_can_be_revoked(tmp_path, monkeypatch, capsys):
     from api.auth import TokenVerifier
     from api.commands import ensure_local_token, token_main
-    from api.db import session_factory
+    from jobstore.engine import session_factory
 
     for k in list(os.environ):
         if k.startswith("NEPF_"):

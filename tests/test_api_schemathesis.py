@@ -13,9 +13,10 @@ from schemathesis.checks import not_a_server_error
 from sqlalchemy import update
 
 from api.auth import create_token
-from api.db import Job, dispose_engines
 from api.main import create_app
 from api.settings import Settings
+from jobstore.engine import dispose_engines
+from jobstore.models import Job
 from service_fixtures import dataset_zip_bytes
 
 STATE: dict = {}

@@ -131,7 +131,7 @@ def test_nepf_cli_forwards_compose_commands_unchanged():
 
 @pytest.mark.parametrize("version,ok", [("7.0.15", True), ("6.2.0", True), ("6.0.9", False), ("5.0.7", False)])
 def test_redis_version_floor(version, ok):
-    from api.queue import check_redis_version
+    from jobstore.queue import check_redis_version
 
     if ok:
         check_redis_version(version)

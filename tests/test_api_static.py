@@ -6,9 +6,9 @@ import os
 
 from fastapi.testclient import TestClient
 
-from api.db import dispose_engines
 from api.main import create_app
 from api.settings import Settings
+from jobstore.engine import dispose_engines
 
 
 def test_static_mount_serves_viewer_and_keeps_api(tmp_path, monkeypatch):

@@ -16,9 +16,10 @@ from PIL import Image
 from sqlalchemy import func, select
 
 from api.auth import create_token
-from api.db import Job, dispose_engines
 from api.main import create_app
 from api.settings import Settings
+from jobstore.engine import dispose_engines
+from jobstore.models import Job
 from service_fixtures import leftover_files, make_dtu_dir, zip_dir
 
 
@@ -221,7 +222,7 @@ def test_valid_upload_queues_job_with_location(make_client, tmp_path):
     job = r.json()
     assert r.headers["location"] == f"/jobs/{job['id']}"
     assert job["status"] == "queued" and job["config"] == {"preset": "tiny", "iters": 7, "time_budget_s": None,
-                                                           "name": "my scan"}
+                                                           "name": "my scan", "max_image_side": None}
     assert job["dataset"]["format"] == "dtu" and job["dataset"]["n_views"] == 6
     assert (data / "jobs" / job["id"] / "dataset" / "cameras.npz").is_file()
     assert list((data / "uploads").iterdir()) == []

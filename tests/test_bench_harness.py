@@ -1,5 +1,5 @@
 """The benchmark harness end to end on a generated tiny scene (``python -m bench run``), its
-comparison arithmetic, and the baked-albedo rasteriser.
+variants and its comparison arithmetic.
 
 Fast: one ``tiny`` run of a ~2 s budget in a subprocess, no Chamfer during training and a
 coarse final Chamfer; the rest is arithmetic on hand-made records.
@@ -7,7 +7,6 @@ coarse final Chamfer; the rest is arithmetic on hand-made records.
 
 from __future__ import annotations
 
-import io
 import json
 import math
 import os
@@ -15,7 +14,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -104,7 +102,7 @@ def test_comparisons_arithmetic():
         _rec("s", "paper", "adaptive", [(60, 20.0), (120, 25.0), (180, 24.0)]),   # best 25 at 120 s
         _rec("s", "fast", "adaptive", [(60, 24.0), (120, 26.0), (180, 27.0)]),    # reaches 25 at 120 s
         _rec("s", "fast", "all_on", [(60, 22.0), (120, 25.5), (180, 26.0)]),
-        _rec("s", "fast", "all_on_occ", [(60, 27.5), (120, 28.0), (180, 28.0)]),
+        _rec("s", "fast", "naive", [(60, 27.5), (120, 28.0), (180, 28.0)]),
         _rec("t", "paper", "adaptive", [(60, 30.0)]),
         _rec("t", "fast", "adaptive", [(60, 20.0), (120, 29.0)]),                   # never reaches 30
     ]
@@ -114,8 +112,8 @@ def test_comparisons_arithmetic():
     assert fp["s"]["ratio"] == pytest.approx(1.0)
     assert fp["t"]["t_fast"] is None and fp["t"]["ratio"] is None
     aa, ao = s["adaptive_vs_all_on"]
-    assert (aa["baseline"], ao["baseline"]) == ("all_on", "all_on_occ")
-    # against all_on_occ: target = min(27, 28) = 27, adaptive at 180 s, the baseline at 60 s
+    assert (aa["baseline"], ao["baseline"]) == ("all_on", "naive")
+    # against naive: target = min(27, 28) = 27, adaptive at 180 s, the baseline at 60 s
     assert ao["target"] == 27.0 and ao["t_adaptive"] == 180 and ao["t_all_on"] == 60
     assert ao["saved_pct"] == pytest.approx(100 * (60 - 180) / 60)
     # target = min(27, 26) = 26: adaptive first >= 26 at 120 s, all_on at 180 s
@@ -132,70 +130,24 @@ def test_comparisons_arithmetic():
 
 
 def test_variants_build_their_baselines():
-    """`all_on` samples without any empty-space skipping, `all_on_occ` uses the occupancy sampler;
-    both switch adaptivity off; `adaptive` changes nothing in the preset."""
+    """`all_on` switches adaptivity off and drops the occupancy grid (no empty ray is left out);
+    `naive` is the brief's dense-grid reference (one 96^3 level, 48 uniform samples, FD normals,
+    nothing adaptive); `adaptive` changes nothing in the preset."""
     from bench.run import VARIANTS
     from nepf_core.config import fast
     from nepf_core.jobs import build_config
     base = fast()
-    assert base.render.sampler == "neus" and base.model.occupancy_resolution > 0 and base.train.adaptive
+    assert base.model.occupancy_resolution > 0 and base.train.adaptive
     on = build_config("fast", None, VARIANTS["all_on"])
-    assert on.render.sampler == "neus" and on.model.occupancy_resolution == 0 and not on.train.adaptive
-    occ = build_config("fast", None, VARIANTS["all_on_occ"])
-    assert occ.render.sampler == "occupancy" and occ.model.occupancy_resolution == base.model.occupancy_resolution
-    assert not occ.train.adaptive
+    assert on.model.occupancy_resolution == 0 and not on.train.adaptive
+    assert on.render == base.render and on.model.sdf_grid == base.model.sdf_grid
+    nv = build_config("fast", None, VARIANTS["naive"])
+    g = nv.model.sdf_grid   # GridSDFConfig keyword arguments
+    assert (g["n_levels"], g["base_resolution"], g["max_resolution"]) == (1, 96, 96) and not nv.train.adaptive
+    assert (nv.render.n_samples, nv.render.n_importance, nv.render.normals) == (48, 0, "fd")
+    assert nv.model.occupancy_resolution == 0 and nv.train.batch_rays == 1024
     ad = build_config("fast", None, VARIANTS["adaptive"])
     assert ad.render == base.render and ad.model == base.model and ad.train.adaptive
-
-
-def test_rasterizer_hits_pixel_centres():
-    """Perspective-correct barycentrics put the interpolated point on each pixel's ray."""
-    from bench.baked_albedo import rasterize
-    K = np.array([[40.0, 0, 16.0], [0, 40.0, 16.0], [0, 0, 1]])
-    v = np.array([[-0.5, -0.5, 2.0], [0.6, -0.4, 3.5], [0.0, 0.7, 2.5], [-0.2, -0.2, 1.5], [0.2, -0.2, 1.5],
-                  [0.0, 0.2, 1.5]])
-    f = np.array([[0, 1, 2], [3, 5, 4]])  # the second (nearer, smaller) triangle occludes the first
-    face, bary = rasterize(v, f, K, 32, 32, max_pairs=50)  # tiny chunks exercise the merging
-    hit = face >= 0
-    assert hit.sum() > 50 and (face == 1).sum() > 5 and (face == 0).sum() > 5
-    j, i = np.nonzero(hit)
-    x = (bary[hit][..., None] * v[f[face[hit]]]).sum(1)
-    u = x @ K.T
-    np.testing.assert_allclose(u[:, 0] / u[:, 2], i + 0.5, atol=1e-6)
-    np.testing.assert_allclose(u[:, 1] / u[:, 2], j + 0.5, atol=1e-6)
-    # occlusion: pixels inside the near triangle's projection belong to it
-    assert face[16, 16] == 1
-
-
-def test_baked_albedo_of_gt_mesh_with_constant_texture(scenes_root, tmp_path):
-    """A GLB of the GT mesh (world coordinates) with the scene's constant albedo: full coverage,
-    near-perfect albedo PSNR; checks the camera/frame conventions of bench.baked_albedo."""
-    import trimesh
-    from PIL import Image
-
-    from bench.baked_albedo import evaluate
-    from nepf_core.data.images import linear_to_srgb
-    from nepf_core.export.glb import write_glb
-
-    scene = scenes_root / "tiny_sphere"
-    mat = json.loads((scene / "gt" / "scene.json").read_text())["material"]
-    albedo = np.asarray(np.load(scene / "gt" / "arrays_test.npz")["albedo"], np.float32)
-    alpha = np.load(scene / "gt" / "arrays_test.npz")["alpha"] > 0.5
-    col = np.median(albedo[alpha], 0)
-    m = trimesh.load(scene / "gt" / "mesh.ply", process=False)
-    img = np.zeros((4, 4, 3), np.uint8) + (linear_to_srgb(col) * 255 + 0.5).astype(np.uint8)
-    buf = io.BytesIO()
-    Image.fromarray(img).save(buf, "PNG")
-    run = tmp_path / "run"
-    v = np.asarray(m.vertices)
-    write_glb(run / "asset.glb", v, np.asarray(m.vertex_normals), np.full((len(v), 2), 0.5),
-              np.asarray(m.faces), buf.getvalue(), buf.getvalue())
-    (run / "export.log").write_text("export: marching_cubes 1.00s, total 12.50s; asset.glb 0.1 MiB\n")
-    res = evaluate(run, scene)
-    assert res["coverage_of_gt_fg"] > 0.97, (res, mat)
-    assert res["hit_outside_gt_fg"] < 0.05
-    assert res["albedo_psnr"] > 35
-    assert res["export_s"] == 12.5 and res["glb_bytes"] > 0
 
 
 def test_pairs_match_by_seed_and_tail_means(tmp_path):
@@ -227,25 +179,6 @@ def test_pairs_match_by_seed_and_tail_means(tmp_path):
     write_table({"runs": [a1, b0, a0, b1]}, summarize({"runs": [a1, b0, a0, b1]}), tmp_path / "t.md")
     table = (tmp_path / "t.md").read_text()
     assert "| s | all_on | 1 | 100 / 100 | 1000 / 1000 | 25.00 / 25.50 | -0.50 | 900 / 1000 | 10% | 25.50 / 25.50 | 10% | 900 / 1000 | 10% |" in table
-
-
-def test_ema_probe_summary_over_the_last_half(tmp_path):
-    """bench.ema_probe's summary: per weight set, the evaluations at >= half the last training
-    time, their mean and mean absolute change, and the final value."""
-    from bench.ema_probe import summarize_probe
-    walls = (100.0, 200.0, 300.0, 400.0)
-    (tmp_path / "metrics.jsonl").write_text("\n".join(
-        json.dumps({"kind": "test", "step": 10 * k, "wall_s": w}) for k, w in enumerate(walls)) + "\n"
-        + json.dumps({"kind": "train", "step": 5, "wall_s": 50.0}) + "\n")
-    rows = []
-    for k, (a, live) in enumerate(((20.0, 19.0), (22.0, 21.0), (24.0, 25.0), (25.0, 23.0)), 1):
-        rows += [{"eval": k, "weights": "ema 0.995", "test_psnr": a}, {"eval": k, "weights": "live", "test_psnr": live}]
-    (tmp_path / "probe.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
-    s = summarize_probe(tmp_path / "probe.jsonl", tmp_path / "metrics.jsonl")
-    # last half: walls >= 200 -> evaluations 2, 3, 4
-    assert s["ema 0.995"]["n_late"] == 3 and s["ema 0.995"]["mean_late"] == pytest.approx(71.0 / 3)
-    assert s["ema 0.995"]["mean_abs_change_late"] == pytest.approx(1.5) and s["ema 0.995"]["final"] == 25.0
-    assert s["live"]["mean_late"] == pytest.approx(23.0) and s["live"]["mean_abs_change_late"] == pytest.approx(3.0)
 
 
 def test_smoothed_pair_comparison_uses_running_means_of_three(tmp_path):
@@ -293,23 +226,3 @@ def test_level_savings_at_every_shared_whole_db_level_up_to_the_lower_final():
     # swapped roles: the same levels, the opposite sign of the time difference
     assert [x["saved_pct"] for x in level_savings(b, a)] == pytest.approx([20.0, 100 / 3, 200 / 7])
     assert level_savings(a, _rec("s", "fast", "all_on", [(30, 30.0)])) == []
-
-
-def test_fall_probe_summary_peak_last_and_fall(tmp_path):
-    """bench.fall_probe's summary: per row kind the peak over evaluations (with the wall_s of
-    the n-th test record), the last value and the fall between them; a null PSNR is skipped."""
-    from bench.fall_probe import summarize_fall
-    walls = (30.0, 60.0, 90.0)
-    (tmp_path / "metrics.jsonl").write_text("\n".join(
-        json.dumps({"kind": "test", "step": 10 * k, "wall_s": w}) for k, w in enumerate(walls)) + "\n")
-    rows = []
-    for k, (held, train) in enumerate(((20.0, 21.0), (23.5, 24.0), (22.0, None)), 1):
-        rows += [{"eval": k, "weights": "held_out", "test_psnr": held, "inv_s": 10.0 * k},
-                 {"eval": k, "weights": "train", "test_psnr": train, "inv_s": 10.0 * k}]
-    (tmp_path / "probe.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
-    s = summarize_fall(tmp_path / "probe.jsonl", tmp_path / "metrics.jsonl")
-    h = s["held_out"]
-    assert (h["peak"], h["peak_wall_s"], h["last"], h["last_wall_s"]) == (23.5, 60.0, 22.0, 90.0)
-    assert h["fall"] == pytest.approx(1.5) and (h["inv_s_at_peak"], h["inv_s_last"]) == (20.0, 30.0)
-    t = s["train"]   # its last row has no PSNR: the last kept one is evaluation 2, the peak
-    assert (t["peak"], t["last"], t["fall"], t["last_wall_s"]) == (24.0, 24.0, 0.0, 60.0)

@@ -9,18 +9,18 @@ from nepf_core.jobs import build_config
 def test_bool_overrides_parse_false_as_false():
     assert fast().render.unlit_albedo_stopgrad is True
     base = fast()
-    assert base.render.unlit_albedo_stopgrad is True and base.render.unlit_material_stopgrad is False
+    assert base.render.unlit_albedo_stopgrad is True and base.render.surface_refine is True
     cfg = build_config("fast", None, {"render.unlit_albedo_stopgrad": "False",
-                                      "render.unlit_material_stopgrad": "true", "render.specular": "false"})
+                                      "render.surface_refine": "0", "render.specular": "false"})
     assert cfg.render.unlit_albedo_stopgrad is False
-    assert cfg.render.unlit_material_stopgrad is True
+    assert cfg.render.surface_refine is False
     assert cfg.render.specular is False
 
 
 def test_numeric_overrides_and_iters():
-    assert fast().model.light_init_albedo != 0.25
-    cfg = build_config("fast", 7, {"model.light_init_albedo": "0.25", "train.batch_rays": "256"})
-    assert cfg.model.light_init_albedo == 0.25 and cfg.train.batch_rays == 256 and cfg.train.iters == 7
+    assert fast().model.init_variance != 0.25
+    cfg = build_config("fast", 7, {"model.init_variance": "0.25", "train.batch_rays": "256"})
+    assert cfg.model.init_variance == 0.25 and cfg.train.batch_rays == 256 and cfg.train.iters == 7
 
 
 @pytest.mark.parametrize("ov,msg", [({"render.specular": "maybe"}, "is a bool"),

@@ -122,6 +122,20 @@ def test_dtu_camera_keys_and_scale_mats(dtu):
     _expect(_err(load_dtu, dtu), "unreadable_cameras", "cameras.npz", None)
 
 
+@pytest.mark.parametrize("content", [b"garbage, not an npz at all", b"", None])
+def test_dtu_garbage_camera_file_is_not_a_valid_npz(dtu, content):
+    """numpy.load reads any non-zip, non-.npy file as a pickle; the message must say what is
+    wrong (not an npz), never "pickled data". ``None``: a bare .npy saved under the npz name."""
+    if content is None:
+        with open(dtu / "cameras.npz", "wb") as f:
+            np.save(f, np.eye(4))
+    else:
+        (dtu / "cameras.npz").write_bytes(content)
+    e = _err(load_dtu, dtu)
+    _expect(e, "unreadable_cameras", "cameras.npz", None)
+    assert "not a valid .npz" in e.message and "pickle" not in e.message
+
+
 def test_dtu_empty_mask(dtu):
     Image.fromarray(np.zeros((32, 40, 3), np.uint8)).save(dtu / "mask/001.png")
     _expect(_err(load_dtu, dtu), "empty_mask", "mask/001.png", 1)
@@ -261,7 +275,8 @@ def test_validate_cli_ok_and_errors(tmp_path):
     rc, out, _ = _run_validate(scene)
     assert rc == 0
     assert out == {"ok": True, "format": "dtu", "n_views": 8, "width": 40, "height": 32,
-                   "has_masks": True, "splits": {"train": 8}, "root": "dtu"}
+                   "working_width": 40, "working_height": 32, "has_masks": True,
+                   "splits": {"train": 8}, "total_pixels": 8 * 40 * 32, "root": "dtu"}
     (scene / "dtu/image/001.png").write_bytes(b"garbage")
     (scene / "dtu/image/006.png").write_bytes(b"garbage")
     rc, out, err = _run_validate(scene)
@@ -273,8 +288,9 @@ def test_validate_cli_ok_and_errors(tmp_path):
 def test_validate_function_blender_splits_and_bad_test_split(tmp_path):
     b = copy_scene(tmp_path) / "blender"
     assert validate_dataset(b) == {"ok": True, "format": "blender", "n_views": 8, "width": 40,
-                                   "height": 32, "has_masks": True, "splits": {"train": 8, "test": 2},
-                                   "root": "."}
+                                   "height": 32, "working_width": 40, "working_height": 32,
+                                   "has_masks": True, "splits": {"train": 8, "test": 2},
+                                   "total_pixels": (8 + 2) * 40 * 32, "root": "."}
     (b / "test/r_1.png").unlink()
     out = validate_dataset(b)
     assert out["ok"] is False

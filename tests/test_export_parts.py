@@ -110,8 +110,17 @@ def test_fit_lights_point_and_directional():
     assert fit["direction_concentration"] == pytest.approx(1.0)
 
 
-def test_preview_failure_is_logged_not_raised(tmp_path, monkeypatch):
+CRASHING_RENDERER = """
+import os, signal, sys
+print("about to crash", file=sys.stderr, flush=True)
+os.kill(os.getpid(), signal.SIGSEGV)   # what a VTK / GL driver crash looks like to the parent
+"""
+
+
+def test_preview_failure_is_logged_not_raised(tmp_path):
     from PIL import Image
+
+    from nepf_core.export.previews import BACKENDS
 
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
     args = (v, np.array([[0, 1, 2]]), v[:, :2], np.tile([0, 0, 1.0], (3, 1)))
@@ -119,13 +128,15 @@ def test_preview_failure_is_logged_not_raised(tmp_path, monkeypatch):
     out = render_previews(*args, tmp_path / "missing_texture.png", tmp_path, frames=1, size=32,
                           log=logs.append)
     assert out == [] and "previews failed" in logs[0] and "texture not found" in logs[0]
-    # a native crash (SIGSEGV) of the VTK child on every backend: logged, caller survives
+    # a native crash (SIGSEGV) of the renderer child on every backend: logged, caller survives
     tex = tmp_path / "t.png"
     Image.new("RGB", (4, 4)).save(tex)
-    monkeypatch.setenv("NEPF_PREVIEW_TEST_CRASH", "1")
+    crash = tmp_path / "crashing_renderer.py"
+    crash.write_text(CRASHING_RENDERER)
     logs = []
-    out = render_previews(*args, tex, tmp_path, frames=1, size=32, log=logs.append)
-    assert out == [] and "killed by signal" in logs[0]
+    out = render_previews(*args, tex, tmp_path, frames=1, size=32, log=logs.append, renderer_script=crash)
+    assert out == [] and len(logs) == 1
+    assert logs[0].count("killed by signal 11") >= len(BACKENDS) and "about to crash" in logs[0]
 
 
 def test_manifest_kinds():

@@ -9,7 +9,7 @@ import torch
 
 from nepf_core.callbacks import FitCallbacks
 from nepf_core.config import tiny
-from nepf_core.fit import FitError, fit
+from nepf_core.train import FitError, fit
 
 
 def _cfg(iters=6):
@@ -73,8 +73,8 @@ def test_records_and_report(small_scene, tmp_path):
 
 
 def test_nonfinite_loss_skips_then_fails(small_scene, tmp_path, monkeypatch):
-    import nepf_core.fit as fitmod
-    real = fitmod.compute_losses
+    import nepf_core.train.loop as loopmod
+    real = loopmod.compute_losses
     calls = {"n": 0}
 
     def poisoned(out, rays, cfg, use_mask, **kw):
@@ -84,18 +84,16 @@ def test_nonfinite_loss_skips_then_fails(small_scene, tmp_path, monkeypatch):
             L["loss"] = L["loss"] * float("nan")
         return L
 
-    monkeypatch.setattr(fitmod, "compute_losses", poisoned)
+    monkeypatch.setattr(loopmod, "compute_losses", poisoned)
     res = fit(small_scene, tmp_path / "ok", _cfg(5), device="cpu")
     assert res.nonfinite_steps == 2 and res.status == "succeeded"
-    for name, p in fitmod.NePFModel(_cfg().model).named_parameters():
-        pass
     ck = torch.load(tmp_path / "ok" / "checkpoints" / "latest.pt", weights_only=False)
     assert all(torch.isfinite(v).all() for v in ck["model"].values() if v.is_floating_point())
     recs = [json.loads(l) for l in (tmp_path / "ok" / "metrics.jsonl").read_text().splitlines()]
     assert recs[-1]["nonfinite_steps"] == 2
 
     calls["n"] = -100  # poison every step now
-    monkeypatch.setattr(fitmod, "compute_losses",
+    monkeypatch.setattr(loopmod, "compute_losses",
                         lambda out, rays, cfg, use_mask, **kw: {**real(out, rays, cfg, use_mask=use_mask, **kw),
                                                                 "loss": torch.tensor(float("inf"))})
     cfg = _cfg(20)
@@ -115,7 +113,7 @@ def test_time_budget_stops_and_writes_outputs(small_scene, tmp_path):
 def test_metrics_log_starts_a_new_line_after_a_line_cut_by_a_kill(tmp_path):
     """A kill -9 mid-write leaves a partial last line; the resumed log must not glue its first
     record onto it (that record would be lost to every reader)."""
-    from nepf_core.fit import MetricsLog
+    from nepf_core.train import MetricsLog
 
     p = tmp_path / "metrics.jsonl"
     p.write_text('{"step": 1, "loss": 0.5}\n{"step": 2, "lo')
@@ -144,7 +142,7 @@ def test_held_out_psnr_keys_score_their_own_channel(small_scene, channel, exact_
     import dataclasses
 
     from nepf_core.evaluate import render_view
-    from nepf_core.fit import EvalTargets, evaluate_test
+    from nepf_core.train import EvalTargets, evaluate_test
     from nepf_core.model import NePFModel
     from nepf_core.rays import PixelSampler
 

@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from nepf_core.fields.fd_normals import sdf_gradient_fd
-from nepf_core.fields.grid_encoding import GridConfig, MultiResGrid, SphereInitSDF, sphere_sdf
+from nepf_core.fields.grid_encoding import GridConfig, MultiResGrid, sphere_sdf
 
 
 def tiny_grid(dtype=torch.float64, levels=2):
@@ -76,21 +76,6 @@ def test_coarse_to_fine_masks_levels_and_grads():
     assert g2.active_levels == 3
 
 
-def test_tv_loss_zero_for_constant_and_subset_estimate():
-    g = tiny_grid()
-    with torch.no_grad():
-        for p in g.grids:
-            p.fill_(0.7)
-    assert g.tv_loss().item() == 0.0
-    torch.manual_seed(1)
-    g = tiny_grid()
-    full = g.tv_loss().item()
-    est = sum(g.tv_loss(n_cells=2000).item() for _ in range(20)) / 20
-    assert est == pytest.approx(full, rel=0.1)
-    g.tv_loss(n_cells=50).backward()
-    assert g.grids[1].grad.abs().sum() > 0
-
-
 def test_device_agnostic_to():
     g = MultiResGrid(GridConfig(n_levels=2, base_resolution=4, max_resolution=8))
     g = g.to(torch.float64)
@@ -102,9 +87,9 @@ def test_device_agnostic_to():
         assert gc(x.cuda()).device.type == "cuda"
 
 
-def test_sphere_init_sdf_starts_as_sphere():
-    g = MultiResGrid(GridConfig(n_levels=2, base_resolution=8, max_resolution=16, init_std=0.1))
-    sdf = SphereInitSDF(g, radius=0.5, width=16, n_feat=3)
+def test_grid_sdf_starts_as_sphere():
+    from nepf_core.fields.sdf_grid import GridSDF, GridSDFConfig
+    sdf = GridSDF(GridSDFConfig(n_levels=2, base_resolution=8, max_resolution=16, width=16, feature_dim=3))
     x = torch.rand(100, 3) * 2 - 1
     s, feat = sdf(x)
     assert feat.shape == (100, 3)
@@ -140,24 +125,24 @@ def test_fd_tetra_on_sphere_first_order():
 
 
 def test_fd_matches_autograd_on_grid_mlp_and_is_trainable():
+    from nepf_core.fields.sdf_grid import GridSDF, GridSDFConfig
     torch.manual_seed(0)
-    g = MultiResGrid(GridConfig(n_levels=2, base_resolution=8, max_resolution=16, features_per_level=2, init_std=0.1))
-    g.set_active_levels(2)
-    sdf = SphereInitSDF(g, width=16).double()
+    sdf = GridSDF(GridSDFConfig(n_levels=2, base_resolution=8, max_resolution=16, width=16, start_levels=2)).double()
+    g = sdf.encoding
     with torch.no_grad():
-        for p in sdf.head.parameters():
+        for p in list(sdf.head.parameters()) + list(g.grids):
             p.normal_(0, 0.3)
     x = (torch.rand(300, 3, dtype=torch.float64) * 1.6 - 0.8).requires_grad_(True)
-    s = sdf.sdf_only(x)
+    s = sdf.sdf(x)
     (g_ad,) = torch.autograd.grad(s.sum(), x)
     # central differences agree up to points whose stencil crosses a cell boundary or a
     # ReLU kink; with a tiny eps that is a small fraction of points
-    g_fd, s_fd = sdf_gradient_fd(sdf.sdf_only, x.detach(), 1e-6, "central", "eval")
+    g_fd, s_fd = sdf_gradient_fd(sdf.sdf, x.detach(), 1e-6, "central", "eval")
     err = (g_fd - g_ad).norm(dim=1)
     assert (err < 1e-5).float().mean() > 0.95
     assert torch.allclose(s_fd, s.detach())
     # eikonal through FD reaches the grid parameters
     sdf.zero_grad()
-    g_fd, _ = sdf_gradient_fd(sdf.sdf_only, x.detach(), 0.5 * g.active_cell_size())
+    g_fd, _ = sdf_gradient_fd(sdf.sdf, x.detach(), 0.5 * g.active_cell_size())
     (g_fd.norm(dim=1) - 1).square().mean().backward()
     assert g.grids[1].grad.abs().sum() > 0

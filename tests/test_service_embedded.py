@@ -10,7 +10,7 @@ import pytest
 from service_fixtures import (REAL_ITERS, REAL_PIPELINE_ENV, max_metric_step, real_scene_zip, check_lifecycle, dataset_zip_bytes, get_job, local_token, service_env, start_api,
                               upload, wait_for, wait_status)
 
-FAST = dict(NEPF_RUN_JOB="service_fixtures:fake_run_job", NEPF_LEASE_S="3", NEPF_HEARTBEAT_S="0.3",
+FAST = dict(NEPF_PIPELINE="service_fixtures:fake_pipeline", NEPF_LEASE_S="3", NEPF_HEARTBEAT_S="0.3",
             NEPF_RECONCILE_INTERVAL_S="1")
 
 

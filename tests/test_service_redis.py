@@ -23,7 +23,7 @@ def stack(tmp_path_factory):
     db_url, drop_db = pg_database()
     data = tmp / "data"
     env = service_env(data, NEPF_BROKER_URL=f"redis://127.0.0.1:{port}/0", NEPF_DATABASE_URL=db_url,
-                      NEPF_RUN_JOB="service_fixtures:fake_run_job", NEPF_FAKE_STEP_S="0.04",
+                      NEPF_PIPELINE="service_fixtures:fake_pipeline", NEPF_FAKE_STEP_S="0.04",
                       NEPF_LEASE_S="3", NEPF_HEARTBEAT_S="0.3", NEPF_RECONCILE_INTERVAL_S="1")
     api, base = start_api(env, tmp)
     h = {"Authorization": f"Bearer {create_token(env, 'carol')}"}

@@ -37,7 +37,7 @@ SDF_FORCE = {
     "plain": (1.0, 0.0),           # the untouched init sphere (radius 0.5)
 }
 INV_S = [1.0, 1e3, 1e6]
-MODES = ["paper", "fast", "fast_occ"]  # fast_occ: the fast preset with the occupancy-guided sampler
+MODES = ["paper", "fast"]
 WSUM_TOL = 1e-5
 
 
@@ -71,8 +71,6 @@ def _cfg(mode: str):
     cfg.model.sdf_grid = {"base_resolution": 8, "max_resolution": 32}
     cfg.model.occupancy_resolution = 16
     cfg.model.radiance.width = cfg.model.photon.width = cfg.model.material.width = 32
-    if mode == "fast_occ":
-        cfg.render.sampler = "occupancy"
     return cfg
 
 
@@ -136,8 +134,6 @@ def _assert_finite_output(out, R: int) -> None:
     assert (ws >= 0).all() and (ws <= 1.0 + WSUM_TOL).all(), f"weight sum out of [0, 1]: {ws.max()}"
     assert (out.w_max >= 0).all() and (out.w_max <= ws + 1e-6).all()
     assert math.isfinite(out.inv_s)
-    if out.skip_fraction is not None:
-        assert 0.0 <= out.skip_fraction <= 1.0
 
 
 def _assert_finite_grads(model) -> None:

@@ -24,7 +24,7 @@ from nepf_core.config import fast, tiny
 from nepf_core.data.detect import load_scene
 from nepf_core.data.synth import PRESETS, make_scene
 from nepf_core.evaluate import render_view
-from nepf_core.fit import fit, load_model
+from nepf_core.train import fit, load_model
 from nepf_core.meshing import world_mesh
 from nepf_core.model import ModelFieldQuery
 from nepf_core.rays import PixelSampler

@@ -105,16 +105,17 @@ def test_many_cameras_are_subsampled_evenly():
 
 
 def test_without_the_lobe_metallic_no_longer_changes_the_shading():
-    """Lobe dropped (``render.specular=False``): the surface PBR is ``f_d(c) I (n.l)`` whatever
+    """Lobe dropped (``Shading(specular=False)``): the surface PBR is ``f_d(c) I (n.l)`` whatever
     the material network says of metallic (two metallic fields, same image), and equals the
     BSDF evaluated with metallic 0; with the lobe on, the two metallic fields differ."""
     from nepf_core.config import tiny
     from nepf_core.model import NePFModel
     from nepf_core.rays import RayBatch
-    from nepf_core.render.renderer import render_rays
+    from nepf_core.render.renderer import Shading, render_rays
 
     torch.manual_seed(0)
     cfg = tiny()
+    fade = {"w": 0.0}
     model = NePFModel(cfg.model)
     base = model.material.forward
     g = torch.Generator().manual_seed(1)
@@ -125,9 +126,9 @@ def test_without_the_lobe_metallic_no_longer_changes_the_shading():
     def surf_rgb(metal_value, specular):
         model.material.forward = lambda x, n, f: (base(x, n, f)[0], base(x, n, f)[1],
                                                   torch.full((x.shape[0],), metal_value))
-        cfg.render.specular = specular
         with torch.no_grad():
-            return render_rays(model, rays, cfg.render, train=False)
+            return render_rays(model, rays, cfg.render, train=False,
+                               shading=Shading(specular=specular, diffuse_metal_weight=fade["w"]))
     a, b = surf_rgb(0.1, False), surf_rgb(0.9, False)
     assert torch.equal(a.rgb_surf, b.rgb_surf) and float(a.rgb_surf.abs().max()) > 1e-3
     s = a.surf
@@ -142,7 +143,7 @@ def test_without_the_lobe_metallic_no_longer_changes_the_shading():
     # mid-fade: (1 - w m) f_d(c) + w f_s. Its diffuse part is the diffuse of ((1 - w m) c,
     # metallic 0); linear in w, so at w = 0.5 it is the mean of the lobe-on image (w = 1,
     # (1 - m) f_d + f_s) and the dielectric diffuse (w = 0, f_d)
-    cfg.render.diffuse_metal_weight = 0.5
+    fade["w"] = 0.5
     h = surf_rgb(0.9, False)
     c2, m2 = diffuse_only_material(h.surf["albedo"], torch.full((64,), 0.9), 0.5)
     ref2 = bsdf_eval(h.surf["normal"], h.surf["light_dir"], -d, c2, h.surf["roughness"][:, None],
@@ -152,7 +153,7 @@ def test_without_the_lobe_metallic_no_longer_changes_the_shading():
     assert float(lobe.abs().max()) > 1e-3
     assert torch.allclose(h.rgb_surf, ref2 + 0.5 * lobe, atol=1e-6)
     assert torch.allclose(h.rgb_surf, 0.5 * (a.rgb_surf + e.rgb_surf), atol=1e-6)
-    cfg.render.diffuse_metal_weight = 1.0      # the drop itself: the lobe-on image exactly
+    fade["w"] = 1.0      # the drop itself: the lobe-on image exactly
     assert torch.allclose(surf_rgb(0.9, False).rgb_surf, e.rgb_surf, atol=1e-6)
 
 
@@ -178,17 +179,16 @@ def test_diffuse_only_material_renders_the_same_as_the_faded_diffuse(lambertian,
     assert f1.abs().max() > 0.01
 
 
-def test_adaptivity_measures_the_spread_on_lit_pixels_only():
+def test_the_lobe_rule_measures_the_spread_on_lit_pixels_only():
     """A near-mirror under a grazing light: most pixels are black, and a black point shows no
     highlight in any view. Points at x < 0 (their pixels unlit) have a flat radiance, points at
     x >= 0 one bright view of three (h = 0.3). On all points the spread would be diluted;
-    ``check_view_spread`` skips unlit rays and gets the lit points' hand-worked
+    :func:`lit_view_spread` skips unlit rays and gets the lit points' hand-worked
     h / (1 + h / 3); with fewer than 8 lit points, or while the radiance misses the lit pixels
     by more than 25 %, it measures nothing (the material decides then)."""
     from types import SimpleNamespace
 
-    from nepf_core.adaptivity import Adaptivity
-    from nepf_core.config import tiny
+    from nepf_core.train.rules.lobe_evidence import lit_view_spread
 
     h, base = 0.3, 0.5
 
@@ -200,82 +200,24 @@ def test_adaptivity_measures_the_spread_on_lit_pixels_only():
     x = _points(64)
     unlit = x[:, 0] < 0
     assert 8 <= int((~unlit).sum()) < 64
-    a = Adaptivity(tiny(), enabled=True, iters_fixed=True)
-    a._cams = CAMS
     out = SimpleNamespace(weight_sum=torch.ones(64), surf={"x": x})
-    a.check_view_spread(model, out, SimpleNamespace(mask=None, unlit=None))
+
+    def measure(rays):
+        return lit_view_spread(model, out, rays, CAMS, view_points=256, radiance_fit_max=0.25)
     n_lit = int((~unlit).sum())
     diluted = n_lit * base * h / (64 * base + n_lit * base * h / 3)
-    assert a._view_spread == pytest.approx(diluted, rel=1e-5)
-    a.check_view_spread(model, out, SimpleNamespace(mask=None, unlit=unlit))
-    assert a._view_spread == pytest.approx(h / (1 + h / 3), rel=1e-5)
+    status, spread, _ = measure(SimpleNamespace(mask=None, unlit=None))
+    assert status == "measured" and spread == pytest.approx(diluted, rel=1e-5)
+    status, spread, _ = measure(SimpleNamespace(mask=None, unlit=unlit))
+    assert spread == pytest.approx(h / (1 + h / 3), rel=1e-5)
     # a radiance that does not explain the lit pixels is no evidence: relative L1 error
     # sum |L_r - I| / sum |I| over the lit foreground; 0.2 passes, 0.3 > 0.25 leaves no measurement
     gt = torch.full((64, 3), 0.4)
-    for rel, measured in ((0.2, True), (0.3, False)):
+    for rel, want in ((0.2, "measured"), (0.3, "unfit")):
         out.rgb_r = gt * (1.0 - rel)
-        a.check_view_spread(model, out, SimpleNamespace(mask=None, unlit=unlit, rgb=gt))
-        assert a._fit_err == pytest.approx(rel, rel=1e-5)
-        assert (a._view_spread is not None) is measured
-    b = Adaptivity(tiny(), enabled=True, iters_fixed=True)
-    b._cams = CAMS
+        status, spread, err = measure(SimpleNamespace(mask=None, unlit=unlit, rgb=gt))
+        assert err == pytest.approx(rel, rel=1e-5) and status == want
+        assert (spread is not None) is (want == "measured")
     few = torch.ones(64, dtype=torch.bool)
     few[:7] = False                                          # 7 lit points: no measurement
-    b.check_view_spread(model, out, SimpleNamespace(mask=None, unlit=few))
-    assert b._view_spread is None
-
-
-# ---------------------------------------------------------------- highlight colour
-BODY = (0.6, 0.3, 0.1)   # chromaticity (0.6, 0.3, 0.1): saturation |0.6-1/3|+|0.3-1/3|+|0.1-1/3| = 8/15
-
-
-class _ColouredRadiance(nn.Module):
-    """Body ``k BODY`` from every facing camera; the camera at +y adds a highlight ``hl``
-    (``[3]``): white for a dielectric, ``BODY``-coloured for a metal."""
-
-    def __init__(self, hl, k: float = 0.5):
-        super().__init__()
-        self.hl, self.k = torch.tensor(hl), k
-
-    def forward(self, x, v, g, feat):
-        c = (self.k * torch.tensor(BODY)).expand(x.shape[0], 3).clone()
-        return torch.where((v[:, 1] < -0.1)[:, None], c + self.hl, c)
-
-
-def _coloured(hl):
-    m = nn.Module()
-    m.sdf, m.radiance = _PlaneSDF(), _ColouredRadiance(hl)
-    return m
-
-
-def test_white_highlight_on_a_coloured_body_reads_as_a_dielectric():
-    """Views ``b, b, b + (h, h, h)``: the highlight's chromaticity is grey, so its distance to
-    the body's equals the body's saturation: 8/15 both (ratio 1)."""
-    r = radiance_view_spread(_coloured([0.2, 0.2, 0.2]), _points(), CAMS, fd_step=1e-3)
-    assert r["body_saturation"] == pytest.approx(8 / 15, rel=1e-5)
-    assert r["chroma_gap"] == pytest.approx(8 / 15, rel=1e-5)
-
-
-def test_body_coloured_highlight_reads_as_a_metal():
-    r = radiance_view_spread(_coloured([0.3 * c for c in BODY]), _points(), CAMS, fd_step=1e-3)
-    assert r["body_saturation"] == pytest.approx(8 / 15, rel=1e-5)
-    assert r["chroma_gap"] == pytest.approx(0.0, abs=1e-6)
-
-
-def test_highlight_chroma_hand_values_and_no_highlight():
-    from nepf_core.view_dependence import chromaticity, highlight_chroma
-    assert torch.allclose(chromaticity(torch.tensor([[2.0, 1.0, 1.0], [0.0, 0.0, 0.0]])),
-                          torch.tensor([[0.5, 0.25, 0.25], [0.0, 0.0, 0.0]]))
-    # two points: a red highlight (luma 0.2126) on a grey body, a grey one (luma 0.3) on a red body
-    c_med = torch.tensor([[0.5, 0.5, 0.5], [0.4, 0.0, 0.0]])
-    c_max = c_med + torch.tensor([[1.0, 0.0, 0.0], [0.3, 0.3, 0.3]])
-    r = highlight_chroma(c_max, c_med)
-    w1, w2 = 0.2126, 0.3
-    gap1, sat1 = 4 / 3, 0.0            # chi(h) = (1, 0, 0) vs body (1/3, 1/3, 1/3)
-    gap2, sat2 = 4 / 3, 4 / 3          # chi(h) grey vs body (1, 0, 0)
-    assert r["chroma_gap"] == pytest.approx((w1 * gap1 + w2 * gap2) / (w1 + w2), rel=1e-5)
-    assert r["body_saturation"] == pytest.approx((w1 * sat1 + w2 * sat2) / (w1 + w2), rel=1e-5)
-    flat = highlight_chroma(c_med, c_med)        # no view is brighter: nothing to read
-    assert math.isnan(flat["chroma_gap"]) and math.isnan(flat["body_saturation"])
-    # a highlight darker in every channel than the median does not count (clamped at 0)
-    assert math.isnan(highlight_chroma(c_med * 0.5, c_med)["chroma_gap"])
+    assert measure(SimpleNamespace(mask=None, unlit=few)) == ("none", None, None)

@@ -35,7 +35,7 @@ const out = {
   lfRecords: lfRecords.positions.length,
   lightsPoint: { position: lp.position.toArray(), intensity: lp.intensity, type: lp.type },
   lightsDir: { position: ld.position, direction: ld.direction.toArray(), atPoint: ld.atPoint, type: ld.type },
-  job: { id: job.id, status: job.status, fraction: job.fraction, stage: job.stage, eta_s: job.eta_s, preset: job.preset, name: job.name, created: job.created },
+  job: { id: job.id, status: job.status, fraction: job.fraction, stage: job.stage, eta_s: job.eta_s, preset: job.preset, name: job.name, created: job.created, step: job.step, total: job.total, wall_s: job.wall_s, error: job.error },
   after: { status: after.status, fraction: after.fraction, step: after.step, stage: after.stage, cancel: after.raw.cancel_requested },
   errors: validationErrors(input.error_body), summary: errorSummary(input.error_body, 422),
   csv: metricsToCsv(input.records),
@@ -79,8 +79,9 @@ def test_viewer_parses_what_export_and_api_write(tmp_path):
     from api.schemas import ErrorBody, JobPublic
 
     job = JobPublic(id="a" * 32, name="scan", status="queued",
-                    progress={"step": 0, "total": 10, "fraction": 0.0, "stage": "loading", "eta_s": None},
-                    created_at="2026-01-02T03:04:05Z", config={"preset": "tiny"},
+                    progress={"step": 3, "total": 10, "fraction": 0.25, "stage": "loading", "eta_s": None,
+                              "wall_s": 1.5},
+                    created_at="2026-01-02T03:04:05Z", config={"preset": "tiny"}, error="a message",
                     delivery={"attempts": 0}, links={}).model_dump(mode="json")
     err = ErrorBody(detail="dataset is invalid", code="invalid_dataset",
                     errors=[{"code": "corrupt_image", "message": "not a readable image",
@@ -103,8 +104,9 @@ def test_viewer_parses_what_export_and_api_write(tmp_path):
     np.testing.assert_allclose(out["lightsDir"]["direction"], [0, 0, 1], atol=1e-6)
     assert out["lightsDir"]["atPoint"] == 1.0
 
-    assert out["job"] == {"id": "a" * 32, "status": "queued", "fraction": 0.0, "stage": "loading",
-                          "eta_s": None, "preset": "tiny", "name": "scan", "created": job["created_at"]}
+    assert out["job"] == {"id": "a" * 32, "status": "queued", "fraction": 0.25, "stage": "loading",
+                          "eta_s": None, "preset": "tiny", "name": "scan", "created": job["created_at"],
+                          "step": 3, "total": 10, "wall_s": 1.5, "error": "a message"}
     assert out["after"] == {"status": "running", "fraction": 0.7, "step": 7, "stage": "training", "cancel": True}
 
     assert out["errors"] == [{"code": "corrupt_image", "message": "not a readable image",
@@ -116,3 +118,28 @@ def test_viewer_parses_what_export_and_api_write(tmp_path):
     assert lines[1] == "5,1,train,0.5,0.25,,"
     assert lines[2] == '50,9,sync,,,20,"a, ""quoted"""'
     assert out["cmap"][0] != out["cmap"][1]
+
+
+def _function_source(js: str, name: str) -> str:
+    start = js.index(f"export function {name}(")
+    return js[start:js.index("\n}\n", start)]
+
+
+def test_job_normalisation_reads_only_fields_the_api_sends():
+    """normJob / applyEvent read only fields of ``JobPublic`` (and its ``progress`` and
+    ``config``): a name the API never sends is dead code, and a renamed API field shows up here."""
+    import re
+
+    from api.schemas import JobConfig, JobPublic, Progress
+
+    live = (SRC / "live.js").read_text()
+    norm = _function_source(live, "normJob")
+    used = {"j": set(re.findall(r"\bj\.(\w+)", norm)), "p": set(re.findall(r"\bp\.(\w+)", norm)),
+            "cfg": set(re.findall(r"\bcfg\.(\w+)", norm))}
+    assert used["j"] and used["p"] and used["cfg"], used
+    assert used["j"] <= set(JobPublic.model_fields), used["j"] - set(JobPublic.model_fields)
+    assert used["p"] <= set(Progress.model_fields), used["p"] - set(Progress.model_fields)
+    assert used["cfg"] <= set(JobConfig.model_fields), used["cfg"] - set(JobConfig.model_fields)
+    event_keys = re.findall(r"'(\w+)'", re.search(r"for \(const k of \[([^\]]*)\]\)",
+                                                   _function_source(live, "applyEvent")).group(1))
+    assert event_keys and set(event_keys) <= set(JobPublic.model_fields), event_keys

@@ -1,15 +1,18 @@
 """Browser tests of the web viewer against the real service (Playwright + Debian's Chromium).
 
 One module-scoped backend: ``nepf serve`` with its embedded default (SQLite job store and
-broker, one local worker running the real ``nepf_core.jobs.run_job``). At start-up a
+broker, one local worker running the real pipeline). At start-up a
 ``tiny`` job on a rendered sphere (``web_fixtures.make_sphere_dtu``) is submitted through the
 API; the tests that need its results wait for it to succeed. Screenshots of the main screens
 go to ``test-artifacts/web/``.
 
 Pixel checks use screenshots of the WebGL canvas: the asset covers the centre (not the
 background colour); switching to the albedo channel, moving the light and showing the light
-field glyphs each change the pixels by a clear margin. Chart checks read the uPlot data the
-app publishes on ``window.__nepf.charts`` and compare it with ``GET /jobs/{id}/metrics``.
+field glyphs each change the pixels by a clear margin. The tests read the app's state from the
+DOM, as a user's tools would: the canvas's ``data-*`` attributes say what the 3D view drew last
+(frame count, channel, light position, glyphs; ``viewer3d.js``), each chart's ``<figure>`` what
+it plots (compared with ``GET /jobs/{id}/metrics``; ``charts.js``), and the job page's
+``data-status`` / ``data-live`` how it follows the job.
 """
 
 from __future__ import annotations
@@ -101,21 +104,42 @@ def canvas_png(page) -> bytes:
     return page.locator("#viewer-canvas").screenshot()
 
 
+def viewer_state(page) -> dict:
+    """What the 3D view drew last: the data-* attributes of its canvas (``describeFrame``)."""
+    d = page.locator("#viewer-canvas").evaluate("el => ({...el.dataset})")
+    return {"state": d.get("state"), "frame": int(d.get("frame", 0)), "channel": d.get("channel"),
+            "wireframe": d.get("wireframe") == "true", "glyphs": int(d.get("glyphs", 0)),
+            "light": [float(v) for v in d.get("lightPosition", "").split()],
+            "gizmo": (float(d.get("gizmoX", "nan")), float(d.get("gizmoY", "nan")))}
+
+
 def wait_frame_after(page, frame: int) -> int:
-    page.wait_for_function("f => window.__nepf.viewer && window.__nepf.viewer.frame > f", arg=frame)
+    page.wait_for_function("f => Number(document.querySelector('#viewer-canvas')?.dataset.frame) > f", arg=frame)
     page.wait_for_timeout(150)  # let the compositor present the frame
-    return page.evaluate("window.__nepf.viewer.frame")
+    return viewer_state(page)["frame"]
 
 
-def viewer_frame(page) -> int:
-    page.evaluate("window.__nepf.viewer = window.__nepf.viewerApi().snapshot()")
-    return page.evaluate("window.__nepf.viewer.frame")
+def wait_viewer_loaded(page, timeout: float = 60_000) -> None:
+    """The asset is loaded and drawn (``data-state`` is written with each frame)."""
+    page.locator('#viewer-canvas[data-state="loaded"]').wait_for(timeout=timeout)
+
+
+def chart_state(page, cid: str) -> dict:
+    """What a chart plots: the data-* attributes of its ``<figure id="chart-CID">``."""
+    d = page.locator(f"#chart-{cid}").evaluate("el => ({...el.dataset})")
+    keys = [k for k in d["series"].split(",") if k]
+    counts = [int(n) for n in d["seriesPoints"].split(",") if n]
+    assert len(keys) == len(counts), d
+    return {"points": int(d["points"]), "series": dict(zip(keys, counts)), "rendered": d["rendered"] == "true"}
+
+
+def chart_records(page) -> int:
+    return int(page.locator("#charts").get_attribute("data-records"))
 
 
 def open_job(page, backend, job_id: str):
     page.goto(f"{backend.base}/#/jobs/{job_id}")
-    page.wait_for_function("() => window.__nepf.viewer && window.__nepf.viewer.loaded && window.__nepf.viewer.frame > 0",
-                           timeout=60_000)
+    wait_viewer_loaded(page)
     page.wait_for_timeout(300)
 
 
@@ -230,8 +254,7 @@ def test_job_page_charts_3d_channels_light_lightfield_download(browser, backend,
     page.goto(backend.base + "/#/jobs")
     page.locator(f'.job-row[data-job-id="{job_id}"] a.job-link').click()
     page.wait_for_url(f"**/#/jobs/{job_id}")
-    page.wait_for_function("() => window.__nepf.viewer && window.__nepf.viewer.loaded && window.__nepf.viewer.frame > 0",
-                           timeout=60_000)
+    wait_viewer_loaded(page)
 
     # --- charts: their data equals the API's metrics, and uPlot drew them
     with backend.client() as c:
@@ -239,17 +262,17 @@ def test_job_page_charts_3d_channels_light_lightfield_download(browser, backend,
     n_sync = len({r["step"] for r in recs if r.get("kind") == "sync"})
     n_loss = len({r["step"] for r in recs if any(k.startswith("loss") for k in r)})
     assert n_sync > 0 and n_loss > 0, "the fixture job wrote no sync / loss records"
-    page.wait_for_function("n => window.__nepf.charts.loss.points >= n", arg=n_loss)
-    charts = page.evaluate("window.__nepf.charts")
+    page.wait_for_function("n => Number(document.querySelector('#chart-loss').dataset.points) >= n", arg=n_loss)
+    charts = {cid: chart_state(page, cid) for cid in ("sync", "loss", "error")}
     assert charts["sync"]["points"] == n_sync
-    assert {s["key"] for s in charts["sync"]["series"]} <= {"psnr_r", "psnr_surf", "psnr_vol"}
-    assert any(s["key"] == "psnr_r" and s["n"] == n_sync for s in charts["sync"]["series"])
+    assert set(charts["sync"]["series"]) <= {"psnr_r", "psnr_surf", "psnr_vol"}
+    assert charts["sync"]["series"].get("psnr_r") == n_sync
     assert charts["loss"]["points"] == n_loss
-    assert "loss" in {s["key"] for s in charts["loss"]["series"]}
+    assert "loss" in charts["loss"]["series"]
     assert charts["sync"]["rendered"] and charts["loss"]["rendered"]
+    assert chart_records(page) == len(recs)
     for cid in ("sync", "loss"):
         fig = page.locator(f"#chart-{cid}")
-        assert int(fig.get_attribute("data-points")) > 0
         assert fig.locator("canvas").count() >= 1
         assert fig.locator(".u-legend").is_visible()
     n_test = len([r for r in recs if r.get("kind") == "test"])
@@ -279,29 +302,29 @@ def test_job_page_charts_3d_channels_light_lightfield_download(browser, backend,
     page.screenshot(path=str(shots / "job-pbr.png"), full_page=True)
 
     # --- channel: albedo changes the pixels
-    f0 = page.evaluate("window.__nepf.viewer.frame")
+    f0 = viewer_state(page)["frame"]
     page.locator("label.seg-item", has_text="Albedo").click()
     assert page.locator("#channel-albedo").is_checked()
     wait_frame_after(page, f0)
-    assert page.evaluate("window.__nepf.viewer.channel") == "albedo"
+    assert viewer_state(page)["channel"] == "albedo"
     albedo = canvas_png(page)
     d_albedo = asset_change(pbr, albedo, BACKGROUND)
     assert d_albedo > 0.2, d_albedo
     page.locator("#viewer-canvas").screenshot(path=str(shots / "channel-albedo.png"))
     for ch in ("roughness", "metallic", "normal"):
-        f0 = page.evaluate("window.__nepf.viewer.frame")
+        f0 = viewer_state(page)["frame"]
         page.locator(f"#channel-{ch}").check(force=True)
         wait_frame_after(page, f0)
-        assert page.evaluate("window.__nepf.viewer.channel") == ch
+        assert viewer_state(page)["channel"] == ch
     page.locator("#viewer-canvas").screenshot(path=str(shots / "channel-normal.png"))
-    f0 = page.evaluate("window.__nepf.viewer.frame")
+    f0 = viewer_state(page)["frame"]
     page.locator("#channel-pbr").check(force=True)
     wait_frame_after(page, f0)
     before_light = canvas_png(page)
 
     # --- relighting: the azimuth slider (keyboard) moves the light and changes the pixels
-    pos0 = page.evaluate("window.__nepf.viewer.light.position")
-    f0 = page.evaluate("window.__nepf.viewer.frame")
+    pos0, f0 = viewer_state(page)["light"], viewer_state(page)["frame"]
+    assert len(pos0) == 3
     az = page.locator("#light-lightAz")
     az.focus()
     start = float(az.input_value())
@@ -309,7 +332,7 @@ def test_job_page_charts_3d_channels_light_lightfield_download(browser, backend,
         page.keyboard.press("PageUp" if start < 0 else "PageDown")
     assert abs(float(az.input_value()) - start) == pytest.approx(180, abs=1)
     wait_frame_after(page, f0)
-    pos1 = page.evaluate("window.__nepf.viewer.light.position")
+    pos1 = viewer_state(page)["light"]
     assert np.linalg.norm(np.subtract(pos1, pos0)) > 1e-3
     after_light = canvas_png(page)
     d_light = asset_change(before_light, after_light, BACKGROUND)
@@ -317,19 +340,20 @@ def test_job_page_charts_3d_channels_light_lightfield_download(browser, backend,
     page.locator("#viewer-canvas").screenshot(path=str(shots / "relit.png"))
 
     # ... and dragging the sphere gizmo moves it too
-    gz = page.evaluate("window.__nepf.viewerApi().gizmoScreenPosition()")
+    gx, gy = viewer_state(page)["gizmo"]
     box = page.locator("#viewer-canvas").bounding_box()
-    x, y = box["x"] + gz["x"], box["y"] + gz["y"]
+    assert 0 <= gx <= box["width"] and 0 <= gy <= box["height"], (gx, gy, box)
+    x, y = box["x"] + gx, box["y"] + gy
     page.mouse.move(x, y)
     page.mouse.down()
     page.mouse.move(x - 60, y + 40, steps=6)
     page.mouse.up()
     page.wait_for_timeout(300)
-    pos2 = page.evaluate("window.__nepf.viewerApi().snapshot().light.position")
+    pos2 = viewer_state(page)["light"]
     assert np.linalg.norm(np.subtract(pos2, pos1)) > 1e-3, "dragging the light gizmo did not move the light"
 
     # --- material editing: roughness scale and tint change the picture live
-    f0 = viewer_frame(page)
+    f0 = viewer_state(page)["frame"]
     base_mat = canvas_png(page)
     page.locator("#albedo-tint").evaluate("(el) => { el.value = '#ff3000'; el.dispatchEvent(new Event('input', {bubbles: true})); }")
     wait_frame_after(page, f0)
@@ -339,12 +363,12 @@ def test_job_page_charts_3d_channels_light_lightfield_download(browser, backend,
 
     # --- light field: the toggle adds glyphs; density changes their number
     page.wait_for_function("() => !document.querySelector('#lightfield-toggle').disabled", timeout=30_000)
-    assert page.evaluate("window.__nepf.viewerApi().snapshot().glyphs") == 0
-    f0 = viewer_frame(page)
+    assert viewer_state(page)["glyphs"] == 0
+    f0 = viewer_state(page)["frame"]
     no_glyphs = canvas_png(page)
     page.get_by_label("Show light glyphs").check()
     wait_frame_after(page, f0)
-    n_glyphs = page.evaluate("window.__nepf.viewerApi().snapshot().glyphs")
+    n_glyphs = viewer_state(page)["glyphs"]
     assert n_glyphs > 0
     assert page.locator("#lightfield-legend").is_visible()
     with_glyphs = canvas_png(page)
@@ -356,17 +380,18 @@ def test_job_page_charts_3d_channels_light_lightfield_download(browser, backend,
     dens = page.locator("#lightfield-density")
     dens.focus()
     page.keyboard.press("End")
-    page.wait_for_function("n => window.__nepf.viewerApi().snapshot().glyphs > n", arg=n_glyphs)
+    page.wait_for_function("n => Number(document.querySelector('#viewer-canvas').dataset.glyphs) > n", arg=n_glyphs)
     page.wait_for_timeout(200)
     page.locator("#viewer-canvas").screenshot(path=str(shots / "light-field.png"))
 
     assert_labelled(page)
 
     # --- wireframe toggle
-    f0 = viewer_frame(page)
+    f0 = viewer_state(page)["frame"]
+    assert viewer_state(page)["wireframe"] is False
     page.get_by_label("Wireframe").check()
     wait_frame_after(page, f0)
-    assert page.evaluate("window.__nepf.viewerApi().snapshot().wireframe") is True
+    assert viewer_state(page)["wireframe"] is True
 
     # --- downloads: the GLB button saves the same bytes as the API serves
     with backend.client() as c:
@@ -435,17 +460,16 @@ def test_upload_folder_through_ui_then_watch_and_cancel(browser, backend, finish
     # without EventSource gets the same through polling
     row.locator("a.job-link").click()
     page.wait_for_url(f"**/#/jobs/{new_id}")
-    page.wait_for_function("() => window.__nepf.liveMode && window.__nepf.liveMode() === 'sse'", timeout=15_000)
+    page.locator('.job-page[data-live="sse"]').wait_for(timeout=15_000)
     poll_page, poll_con = new_page(browser, backend)
     poll_page.context.add_init_script("delete window.EventSource;")
     poll_page.goto(f"{backend.base}/#/jobs/{new_id}")
-    poll_page.wait_for_function("() => window.__nepf.liveMode && window.__nepf.liveMode() === 'polling'",
-                                timeout=15_000)
-    n0 = page.evaluate("window.__nepf.charts.records")
-    m0 = poll_page.evaluate("window.__nepf.charts.records")
-    page.wait_for_function("n => window.__nepf.charts.records > n", arg=n0, timeout=180_000)
-    poll_page.wait_for_function("n => window.__nepf.charts.records > n", arg=m0, timeout=30_000)
-    assert page.evaluate("window.__nepf.charts.loss.points") > 0
+    poll_page.locator('.job-page[data-live="polling"]').wait_for(timeout=15_000)
+    more_records = "n => Number(document.querySelector('#charts').dataset.records) > n"
+    n0, m0 = chart_records(page), chart_records(poll_page)
+    page.wait_for_function(more_records, arg=n0, timeout=180_000)
+    poll_page.wait_for_function(more_records, arg=m0, timeout=30_000)
+    assert chart_state(page, "loss")["points"] > 0
     page.screenshot(path=str(shots / "job-running.png"), full_page=True)
     poll_page.context.close()
     poll_con.assert_clean()
@@ -458,14 +482,14 @@ def test_upload_folder_through_ui_then_watch_and_cancel(browser, backend, finish
     try:
         page.locator("#job-note").wait_for(state="visible", timeout=30_000)
     except Exception:
-        raise AssertionError(f"statuses shown: {page.evaluate('window.__nepf.statusTrail')}, "
+        raise AssertionError(f"status shown: {page.locator('.job-page').get_attribute('data-status')}, "
                              f"API: {backend.job(new_id)['status']}") from None
     assert "partial results" in page.locator("#job-note").inner_text()
     assert page.locator(".job-page").get_attribute("data-status") == "cancelled"
     with backend.client() as c:
         has_glb = any(a["path"] == "asset.glb" for a in c.get(f"/jobs/{new_id}/artifacts").json()["artifacts"])
     if has_glb:
-        page.wait_for_function("() => window.__nepf.viewer && window.__nepf.viewer.loaded", timeout=60_000)
+        wait_viewer_loaded(page)
     else:
         page.locator("#viewer-msg", has_text="cancelled before an asset").wait_for()
     page.screenshot(path=str(shots / "job-cancelled.png"), full_page=True)

@@ -8,7 +8,7 @@ from torch import nn
 
 from nepf_core.callbacks import FitCallbacks
 from nepf_core.config import tiny
-from nepf_core.fit import fit, load_model
+from nepf_core.train import fit, load_model
 from nepf_core.weight_average import ParamEMA
 
 
@@ -134,72 +134,16 @@ def test_reset_restarts_at_the_live_weights():
         assert torch.equal(s, p.detach())
 
 
-def test_time_based_decay_hand_worked_and_independent_of_the_step_rate():
-    m = nn.Linear(1, 1, bias=False)
-    with torch.no_grad():
-        m.weight.fill_(0.0)
-    ema = ParamEMA(m, half_life_s=2.0)
-    ema.updates = 1000  # past the warm-up, which would bind at (1 + t) / (10 + t) = 0.991
-    with torch.no_grad():
-        m.weight.fill_(8.0)
-    ema.update(m, dt_s=2.0)  # one half-life: beta = 0.5 -> 0.5 * 0 + 0.5 * 8
-    assert ema.shadow[0].item() == pytest.approx(4.0)
-    assert ema.beta(0.5) == pytest.approx(0.5 ** 0.25)
-    # ten steps of 0.1 s move the average as far as one step of 1 s: (0.5^(0.1/2))^10 = 0.5^(1/2)
-    fine, coarse = ParamEMA(m, half_life_s=2.0), ParamEMA(m, half_life_s=2.0)
-    for e in (fine, coarse):
-        e.updates = 1000
-        with torch.no_grad():
-            e.shadow[0].fill_(0.0)
-    for _ in range(10):
-        fine.update(m, dt_s=0.1)
-    coarse.update(m, dt_s=1.0)
-    assert fine.shadow[0].item() == pytest.approx(coarse.shadow[0].item(), rel=1e-6)
-    assert coarse.shadow[0].item() == pytest.approx(8.0 * (1 - 0.5 ** 0.5), rel=1e-6)
-
-
-def test_time_based_decay_rejects_bad_input():
+def test_decay_must_be_in_the_open_unit_interval():
     m = nn.Linear(1, 1)
-    with pytest.raises(ValueError, match="half-life"):
-        ParamEMA(m, half_life_s=-1.0)
-    with pytest.raises(ValueError, match="half-life"):
-        ParamEMA(m, half_life_s=float("inf"))
-    with pytest.raises(ValueError, match="dt_s"):
-        ParamEMA(m, half_life_s=1.0).update(m)
-    with pytest.raises(ValueError, match="dt_s"):
-        ParamEMA(m, half_life_s=1.0).update(m, dt_s=-0.5)
-    assert ParamEMA(m, 0.9, half_life_s=3.0).state_dict()["half_life_s"] == 3.0
+    for bad in (0.0, 1.0, -0.5, 1.5):
+        with pytest.raises(ValueError, match="decay"):
+            ParamEMA(m, bad)
+    assert ParamEMA(m, 0.9).state_dict()["decay"] == 0.9
 
 
-def _avg_and_live(run):
-    state = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)
-    return state["extra"]["ema"]["params"], state["model"]
-
-
-def test_fit_feeds_the_time_based_average_each_steps_duration(small_scene, tmp_path):
-    # a half-life far below any step's duration: beta ~ 0, the average is the live weights
-    short = _cfg(4)
-    short.train.ema_decay, short.train.ema_half_life_s = 0.0, 1e-9
-    fit(small_scene, tmp_path / "short", short, device="cpu")
-    avg, live = _avg_and_live(tmp_path / "short")
-    for name, value in avg.items():
-        assert torch.equal(value, live[name]), name
-    # a half-life far above the run: beta ~ 1, only the warm-up (1 + t) / (10 + t) moves it,
-    # as for a per-step decay just below 1 (same seed, same live weights)
-    long, step_based = _cfg(4), _cfg(4)
-    long.train.ema_decay, long.train.ema_half_life_s = 0.0, 1e9
-    step_based.train.ema_decay = 1.0 - 1e-12
-    fit(small_scene, tmp_path / "long", long, device="cpu")
-    fit(small_scene, tmp_path / "step", step_based, device="cpu")
-    a, live_long = _avg_and_live(tmp_path / "long")
-    b, _ = _avg_and_live(tmp_path / "step")
-    assert any(not torch.equal(a[n], live_long[n]) for n in a)
-    for name in a:
-        assert torch.allclose(a[name], b[name], rtol=1e-5, atol=1e-7), name
-
-
-def test_fit_rejects_a_negative_half_life(small_scene, tmp_path):
+def test_fit_rejects_a_negative_decay(small_scene, tmp_path):
     cfg = _cfg(2)
-    cfg.train.ema_half_life_s = -3.0
-    with pytest.raises(ValueError, match="half-life"):
+    cfg.train.ema_decay = -0.5
+    with pytest.raises(ValueError, match="decay"):
         fit(small_scene, tmp_path / "r", cfg, device="cpu")

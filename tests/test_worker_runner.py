@@ -10,11 +10,13 @@ import time
 import pytest
 from sqlalchemy import update
 
-from api.db import Job, dispose_engines, session_factory, utcnow
-from api.reconcile import reconcile_once
 from api.settings import Settings
+from jobstore.engine import dispose_engines, session_factory
+from jobstore.models import Job, utcnow
+from jobstore.reconcile import reconcile_once
 from nepf_core.data.errors import DatasetError
-from service_fixtures import fake_run_job, make_dtu_dir, pg_database
+from nepf_core.pipeline import JobRequest, load_pipeline
+from service_fixtures import fake_pipeline, make_dtu_dir, pg_database
 from worker.runner import JobRunner
 
 
@@ -54,7 +56,7 @@ def get(Session, jid) -> Job:
 def test_claim_is_exclusive_and_finished_jobs_are_dropped(store):
     settings, Session = store
     jid = new_job(settings, Session)
-    a = JobRunner(settings, Session, jid, "A", run_job=fake_run_job)
+    a = JobRunner(settings, Session, jid, "A", pipeline=fake_pipeline)
     assert a.claim() == "claimed"
     assert JobRunner(settings, Session, jid, "B").claim() == "held"      # live lease elsewhere
     assert a.finish("succeeded", None, {"status": "succeeded", "step": 20, "total": 20}) == "succeeded"
@@ -97,7 +99,7 @@ def test_cancel_before_claim(store):
 def test_full_run_progress_and_cooperative_cancel(store):
     settings, Session = store
     jid = new_job(settings, Session, config={"preset": "tiny", "iters": 100000})
-    r = JobRunner(settings, Session, jid, "A", run_job=fake_run_job)
+    r = JobRunner(settings, Session, jid, "A", pipeline=fake_pipeline)
     out = {}
     t = threading.Thread(target=lambda: out.update(res=r.run()))
     t.start()
@@ -125,12 +127,66 @@ def test_exceptions_become_failed_with_a_human_message(store, exc, expect):
     settings, Session = store
     jid = new_job(settings, Session)
 
-    def boom(*a, **k):
+    def boom(request: JobRequest) -> dict:
         raise exc
-    assert JobRunner(settings, Session, jid, "A", run_job=boom).run() == "failed"
+    assert JobRunner(settings, Session, jid, "A", pipeline=boom).run() == "failed"
     j = get(Session, jid)
     assert j.status == "failed" and expect in j.error and j.completions == 1
 
+
+
+def test_pipeline_gets_one_request_from_job_config_and_settings(store):
+    """The pipeline is called once, with a JobRequest holding the job's config and the
+    worker's settings; its summary becomes the job's result."""
+    settings, Session = store
+    settings = settings.model_copy(update=dict(device="cpu", checkpoint_every=7, export_texture_size=64,
+                                               export_mesh_resolution=32, export_max_faces=900))
+    jid = new_job(settings, Session, config={"preset": "paper", "iters": 12, "time_budget_s": 30.5})
+    calls = []
+
+    def record(request: JobRequest) -> dict:
+        calls.append(request)
+        request.callbacks.progress({"step": 3, "total": 12, "fraction": 0.25, "stage": "train"})
+        return {"status": "succeeded", "step": 12, "total": 12, "wall_s": 1.5}
+
+    assert JobRunner(settings, Session, jid, "A", pipeline=record).run() == "succeeded"
+    (req,) = calls
+    assert (req.data_dir, req.run_dir) == (settings.jobs_path / jid / "dataset", settings.jobs_path / jid / "run")
+    assert (req.preset, req.iters, req.time_budget_s, req.device, req.resume) == ("paper", 12, 30.5, "cpu", True)
+    assert (req.checkpoint_every, req.texture_size, req.mesh_resolution, req.max_faces) == (7, 64, 32, 900)
+    assert req.callbacks.stop_requested() is False
+    j = get(Session, jid)
+    assert j.step == 12 and j.wall_s == 1.5 and j.result["status"] == "succeeded"
+    assert j.attempt_log[-1]["first_step"] == 3
+
+
+def test_pipeline_setting_names_the_function(store, monkeypatch):
+    """NEPF_PIPELINE is resolved when a job runs; a wrong one fails the job with a message naming it."""
+    settings, Session = store
+    monkeypatch.setenv("NEPF_FAKE_STEP_S", "0")
+    ok = new_job(settings, Session, config={"preset": "tiny", "iters": 5})
+    named = settings.model_copy(update={"pipeline": "service_fixtures:fake_pipeline"})
+    assert JobRunner(named, Session, ok, "A").run() == "succeeded"
+    assert get(Session, ok).step == 5 and (settings.jobs_path / ok / "run" / "asset.glb").exists()
+    bad = new_job(settings, Session)
+    missing = settings.model_copy(update={"pipeline": "nepf_no_such_module:run"})
+    assert JobRunner(missing, Session, bad, "A").run() == "failed"
+    assert "NEPF_PIPELINE='nepf_no_such_module:run': cannot import module" in get(Session, bad).error
+
+
+def test_load_pipeline_and_setting_format():
+    from pydantic import ValidationError
+
+    from nepf_core.pipeline import run_pipeline
+
+    assert load_pipeline("nepf_core.pipeline:run_pipeline") is run_pipeline
+    assert Settings().pipeline == "nepf_core.pipeline:run_pipeline"
+    with pytest.raises(ValueError, match=r"NEPF_PIPELINE='nepf_core.pipeline': expected 'package.module:function'"):
+        load_pipeline("nepf_core.pipeline")
+    with pytest.raises(ValueError, match="has no function 'nope'"):
+        load_pipeline("nepf_core.pipeline:nope")
+    with pytest.raises(ValidationError, match="pipeline"):
+        Settings(pipeline="nepf_core.pipeline.run_pipeline")   # a dot where the colon goes
 
 def test_reconciler_requeues_orphans_only(store):
     settings, Session = store
@@ -165,7 +221,7 @@ def test_lease_lost_mid_run_stops_without_result(store):
     """A worker that stalled past its lease (another took over) stops at its next step and writes nothing."""
     settings, Session = store
     jid = new_job(settings, Session, config={"preset": "tiny", "iters": 100000})
-    r = JobRunner(settings, Session, jid, "A", run_job=fake_run_job)
+    r = JobRunner(settings, Session, jid, "A", pipeline=fake_pipeline)
     out = {}
     t = threading.Thread(target=lambda: out.update(res=r.run()))
     t.start()

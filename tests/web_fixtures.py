@@ -3,8 +3,8 @@
 * :func:`ensure_web_built` builds ``web/dist`` (``npm ci`` when ``node_modules`` is missing,
   ``npm run build`` when ``dist`` is older than the sources).
 * :class:`Backend` runs the real service the way a user does, ``nepf serve`` with its embedded
-  default (SQLite job store, SQLite broker, one local worker that calls the real
-  ``nepf_core.jobs.run_job``, with smaller export sizes: :data:`WEB_TEST_EXPORT`) on a free
+  default (SQLite job store, SQLite broker, one local worker that runs the real pipeline,
+  ``nepf_core.pipeline.run_pipeline``, with smaller export sizes: :data:`WEB_TEST_EXPORT`) on a free
   loopback port, reads the login URL it prints, and stops it (and the worker it started) by
   process-group id.
 * :func:`make_sphere_dtu` renders a small DTU-layout dataset (a shaded sphere, masks,
@@ -192,23 +192,26 @@ def invalid_dataset_zip(tmp: Path, bad_file: str = "image/002.png") -> bytes:
 
 
 # ------------------------------------------------------------------------------ backend
-# Export sizes for the jobs of the browser tests. ``run_job``'s defaults (1024² textures,
+# Export sizes for the jobs of the browser tests. The presets' defaults (1024² textures,
 # 100k faces, a 256³ SDF grid) take minutes on a 2-core CPU; the viewer's behaviour does not
 # depend on them. Training, export code paths, artifacts and manifest are the real ones.
-# ``NEPF_WEB_TEST_FULL_EXPORT=1`` runs the worker's default ``run_job`` unchanged.
+# ``NEPF_WEB_TEST_FULL_EXPORT=1`` runs the worker's default pipeline unchanged.
 WEB_TEST_EXPORT = {"texture_size": 256, "max_faces": 5000, "mesh_resolution": 64}
 
 
-def run_job_small_export(data_dir, run_dir, **kwargs) -> dict:
-    """The real :func:`nepf_core.jobs.run_job` with :data:`WEB_TEST_EXPORT` (the worker's
-    ``NEPF_RUN_JOB`` hook points here in the browser tests)."""
-    from nepf_core.jobs import run_job
+def pipeline_small_export(request):
+    """The real :func:`nepf_core.pipeline.run_pipeline` with :data:`WEB_TEST_EXPORT` (the
+    worker's ``NEPF_PIPELINE`` setting names this function in the browser tests)."""
+    from dataclasses import replace
 
-    if kwargs.get("iters") is None and kwargs.get("time_budget_s"):
+    from nepf_core.pipeline import run_pipeline
+
+    iters = request.iters
+    if iters is None and request.time_budget_s:
         # a budgeted upload without an iteration count would stop at tiny's 100 steps (~5 s),
         # before a browser test can watch and cancel it: train until the budget or a cancel
-        kwargs["iters"] = 100_000
-    return run_job(data_dir, run_dir, **{**WEB_TEST_EXPORT, **kwargs})
+        iters = 100_000
+    return run_pipeline(replace(request, iters=iters, **WEB_TEST_EXPORT))
 
 
 class Backend:
@@ -228,7 +231,7 @@ class Backend:
             "PYTHONUNBUFFERED": "1",
         })
         if os.environ.get("NEPF_WEB_TEST_FULL_EXPORT") != "1":
-            env["NEPF_RUN_JOB"] = "web_fixtures:run_job_small_export"
+            env["NEPF_PIPELINE"] = "web_fixtures:pipeline_small_export"
         env.update(env_extra or {})
         self.log_path = Path(log_path)
         self.log = open(self.log_path, "ab")

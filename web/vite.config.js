@@ -11,12 +11,10 @@ export default defineConfig({
     sourcemap: false,
   },
   server: {
-    // `npm run dev` proxies API calls to a running `nepf serve` (default port 8000).
+    // `npm run dev` proxies API calls to a running `nepf serve` (default port 8000). The app
+    // calls only the job routes (src/api.js; api/routes/jobs.py).
     proxy: {
       '/jobs': 'http://127.0.0.1:8000',
-      '/api': 'http://127.0.0.1:8000',
-      '/auth': 'http://127.0.0.1:8000',
-      '/health': 'http://127.0.0.1:8000',
     },
   },
 });

@@ -7,6 +7,8 @@ import logging
 import os
 import sys
 
+from .lifetime import exit_with_parent, hold_data_dir_lock
+
 
 def worker_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="nepf worker", description="Run a NePF Celery worker. It must share "
@@ -18,6 +20,10 @@ def worker_parser() -> argparse.ArgumentParser:
                    help="Celery pool (default: solo for concurrency 1, else prefork)")
     p.add_argument("--loglevel", default="INFO")
     p.add_argument("--data-dir", default=None, help="overrides NEPF_DATA_DIR")
+    p.add_argument("--parent-pid", type=int, default=None,
+                   help="stop (re-queueing the running job) when this process exits; nepf serve sets it")
+    p.add_argument("--check", action="store_true", help="healthcheck: exit 0 if a worker on this host "
+                   "is alive and the broker answers, else print why and exit 1 (worker/health.py)")
     return p
 
 
@@ -26,14 +32,26 @@ def worker_main(argv: list[str] | None = None) -> int:
     if args.data_dir:
         os.environ["NEPF_DATA_DIR"] = args.data_dir
     logging.basicConfig(level=args.loglevel.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from api.settings import reset_settings_cache
+    if args.parent_pid is not None:
+        exit_with_parent(args.parent_pid)
+    from api.settings import get_settings, reset_settings_cache
     reset_settings_cache()
+    settings = get_settings()
+    if args.check:
+        from .health import check_main
+        return check_main(settings)
+    # on the embedded broker, one worker per data dir: held until this process exits
+    lock_fd = hold_data_dir_lock(settings.data_path) if settings.embedded else None
     from .tasks import app
 
     pool = args.pool or ("solo" if args.concurrency == 1 else "prefork")
-    app.worker_main(["worker", "-Q", args.queues, "-c", str(args.concurrency), "-P", pool,
-                     "-l", args.loglevel, "-n", f"nepf-{os.getpid()}@%h", "--without-gossip",
-                     "--without-mingle", "--without-heartbeat"])
+    try:
+        app.worker_main(["worker", "-Q", args.queues, "-c", str(args.concurrency), "-P", pool,
+                         "-l", args.loglevel, "-n", f"nepf-{os.getpid()}@%h", "--without-gossip",
+                         "--without-mingle", "--without-heartbeat"])
+    finally:
+        if lock_fd is not None:
+            os.close(lock_fd)
     return 0
 
 

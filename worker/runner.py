@@ -1,4 +1,4 @@
-"""Run one job: claim it, call ``run_job``, record the outcome. No Celery in here.
+"""Run one job: claim it, call the pipeline (``NEPF_PIPELINE``), record the outcome. No Celery in here.
 
 Delivery semantics (see docs/SERVICE.md):
 
@@ -12,14 +12,15 @@ Delivery semantics (see docs/SERVICE.md):
   was lost (another worker took over after we stalled), training is stopped.
 * **completion**: one conditional UPDATE, only while we hold the lease and the job is running;
   ``completions`` counts it, so a job can never be completed twice.
-* **resume**: ``run_job(..., resume=True)`` continues from ``RUN/checkpoints/latest.pt``.
+* **resume**: the pipeline gets ``JobRequest(resume=True)`` and continues from
+  ``RUN/checkpoints/latest.pt``.
+* **pipeline**: one fixed signature, ``pipeline(JobRequest) -> summary dict``
+  (``nepf_core/pipeline.py``); the setting ``NEPF_PIPELINE`` names it.
 """
 
 from __future__ import annotations
 
 import datetime as dt
-import importlib
-import inspect
 import json
 import logging
 import os
@@ -32,7 +33,7 @@ from typing import Any, Callable, Optional
 from sqlalchemy import select, update
 from sqlalchemy.orm import sessionmaker
 
-from api.db import Job, utcnow
+from jobstore.models import Job, utcnow
 from api.settings import Settings
 
 log = logging.getLogger("nepf.worker")
@@ -42,13 +43,14 @@ class LeaseLost(RuntimeError):
     """Raised from ``should_stop`` when this worker no longer holds the job's lease."""
 
 
+class ShutdownRequested(RuntimeError):
+    """Raised from ``on_progress`` when training stopped for a worker shutdown and the pipeline
+    moves on to its export: the job goes back to the queue instead (the next worker resumes from
+    the checkpoint and exports then), so a shutdown waits for one step, not for a whole export."""
+
+
 def worker_identity() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
-
-
-def resolve_run_job(spec: str) -> Callable[..., dict]:
-    mod, _, fn = spec.partition(":")
-    return getattr(importlib.import_module(mod), fn or "run_job")
 
 
 def human_error(exc: BaseException) -> str:
@@ -66,14 +68,21 @@ def human_error(exc: BaseException) -> str:
     return f"training failed: {name}: {text}" if text else f"training failed: {name}"
 
 
+def scrub_server_paths(message: str, settings: Settings) -> str:
+    """``message`` without the data dir's absolute path (``<data dir>`` instead): a job's error is
+    an API response, and an ``OSError`` names the file it failed on."""
+    return message.replace(str(settings.data_path), "<data dir>")
+
+
 class JobRunner:
     def __init__(self, settings: Settings, Session: sessionmaker, job_id: str,
-                 worker_id: Optional[str] = None, run_job: Optional[Callable[..., dict]] = None) -> None:
+                 worker_id: Optional[str] = None, pipeline: Optional[Callable[..., dict]] = None,
+                 shutdown: Optional[threading.Event] = None) -> None:
         self.settings = settings
         self.Session = Session
         self.job_id = job_id
         self.worker_id = worker_id or worker_identity()
-        self._run_job = run_job
+        self._pipeline = pipeline  # None: the one NEPF_PIPELINE names
         self._progress: Optional[dict] = None
         self._progress_dirty = False
         self._first_step: Optional[int] = None
@@ -83,6 +92,8 @@ class JobRunner:
         self._lease_lost = False
         self._lock = threading.Lock()
         self._stop_hb = threading.Event()
+        # set when the worker process is stopping (SIGTERM/SIGINT/SIGQUIT, or its nepf serve died)
+        self._shutdown = shutdown or threading.Event()
         self._last_poll = 0.0
 
     # ------------------------------------------------------------------ DB helpers
@@ -184,6 +195,8 @@ class JobRunner:
 
     # ------------------------------------------------------------------ callbacks
     def on_progress(self, info: dict) -> None:
+        if info.get("stage") == "exporting" and self._shutdown.is_set() and not self._cancel:
+            raise ShutdownRequested(f"job {self.job_id}: worker shutting down before the export")
         with self._lock:
             self._progress = dict(info)
             self._progress_dirty = True
@@ -195,7 +208,7 @@ class JobRunner:
         if self._lease_lost:
             # another worker owns the job now: leave at once, without exporting into its run folder
             raise LeaseLost(f"job {self.job_id}: lease lost to another worker")
-        return self._cancel
+        return self._cancel or self._shutdown.is_set()
 
     # ------------------------------------------------------------------ main
     @property
@@ -205,6 +218,21 @@ class JobRunner:
     @property
     def run_dir(self) -> Path:
         return self.job_dir / "run"
+
+    def job_request(self, cfg: dict):
+        """The pipeline's :class:`~nepf_core.pipeline.JobRequest`: the job's config (preset,
+        iters, time budget) and the worker's settings (device, checkpoint period, export sizes)."""
+        from nepf_core.callbacks import FitCallbacks  # torch-free modules
+        from nepf_core.pipeline import JobRequest
+
+        s = self.settings
+        return JobRequest(data_dir=self.job_dir / "dataset", run_dir=self.run_dir,
+                          preset=cfg.get("preset") or s.default_preset, iters=cfg.get("iters"),
+                          time_budget_s=cfg.get("time_budget_s"), device=s.device, resume=True,
+                          callbacks=FitCallbacks(on_progress=self.on_progress, should_stop=self.should_stop),
+                          checkpoint_every=s.checkpoint_every, texture_size=s.export_texture_size,
+                          mesh_resolution=s.export_mesh_resolution, max_faces=s.export_max_faces,
+                          max_side=s.job_max_side(cfg.get("max_image_side")))
 
     def run(self) -> str:
         outcome = self.claim()
@@ -217,28 +245,13 @@ class JobRunner:
         hb = threading.Thread(target=self._heartbeat_loop, name=f"hb-{self.job_id[:8]}", daemon=True)
         hb.start()
         status, error, result = "failed", None, None
+        interrupted = False   # stopped by a worker shutdown: back to the queue, not finished
         try:
-            from nepf_core.callbacks import FitCallbacks  # torch-free module
+            from nepf_core.pipeline import load_pipeline  # torch-free module
 
-            fn = self._run_job or resolve_run_job(self.settings.run_job)
-            kwargs: dict[str, Any] = dict(preset=cfg.get("preset") or self.settings.default_preset,
-                                          iters=cfg.get("iters"), time_budget_s=cfg.get("time_budget_s"),
-                                          device=self.settings.device,
-                                          callbacks=FitCallbacks(on_progress=self.on_progress,
-                                                                 should_stop=self.should_stop),
-                                          resume=True)
-            params = inspect.signature(fn).parameters
-            if self.settings.checkpoint_every is not None:
-                if "checkpoint_every" in params:
-                    kwargs["checkpoint_every"] = self.settings.checkpoint_every
-                elif "overrides" in params:
-                    kwargs["overrides"] = {"train.checkpoint_every": self.settings.checkpoint_every}
-            for name in ("texture_size", "mesh_resolution", "max_faces"):
-                value = getattr(self.settings, f"export_{name}")
-                if value is not None and name in params:
-                    kwargs[name] = value
+            pipeline = self._pipeline or load_pipeline(self.settings.pipeline)
             self.run_dir.mkdir(parents=True, exist_ok=True)
-            result = fn(str(self.job_dir / "dataset"), str(self.run_dir), **kwargs)
+            result = pipeline(self.job_request(cfg))
             status = (result or {}).get("status", "succeeded")
             if status not in ("succeeded", "cancelled", "failed"):
                 status = "succeeded"
@@ -247,9 +260,18 @@ class JobRunner:
             self._stop_hb.set()
             hb.join(timeout=10)
             return "lease_lost"
+        except ShutdownRequested as exc:
+            log.warning("%s", exc)
+            interrupted = True
         except Exception as exc:  # noqa: BLE001 - every failure becomes a failed job with a message
-            log.error("job %s failed: %s", self.job_id, "".join(traceback.format_exception(exc))[-4000:])
-            status, error = "failed", human_error(exc)
+            if self._shutdown.is_set():
+                # a cold shutdown (SIGQUIT) raises Celery's cancellation into the pipeline: the job
+                # did not fail, its worker stopped; the checkpoint is still there
+                log.warning("job %s interrupted by the worker shutdown: %s", self.job_id, exc)
+                interrupted = True
+            else:
+                log.error("job %s failed: %s", self.job_id, "".join(traceback.format_exception(exc))[-4000:])
+                status, error = "failed", scrub_server_paths(human_error(exc), self.settings)
         finally:
             self._stop_hb.set()
             hb.join(timeout=10)
@@ -258,7 +280,31 @@ class JobRunner:
             self._heartbeat_once()   # last progress/decisions
         except Exception:  # noqa: BLE001
             pass
+        if interrupted or (status == "cancelled" and self._shutdown.is_set() and not self._cancel):
+            return self.requeue()
         return self.finish(status, error, result)
+
+    def requeue(self) -> str:
+        """Give the job back after a worker shutdown: ``queued`` again (stage ``interrupted``), lease
+        released, ``enqueued_at`` cleared so that the next reconcile pass (on the next worker's
+        start, or the API's) re-sends it, and the next worker resumes it from its checkpoint. The
+        claim is not counted against ``NEPF_MAX_DELIVERIES`` (a clean stop is not a crash); the
+        attempt stays in ``attempt_log``, marked ``interrupted``."""
+        with self.Session() as s:
+            job = s.get(Job, self.job_id)
+            logs = list(job.attempt_log or []) if job is not None else []
+            if logs and logs[-1].get("worker") == self.worker_id:
+                logs[-1] = {**logs[-1], "interrupted": "worker shutdown"}
+            res = s.execute(update(Job).where(Job.id == self.job_id, Job.lease_owner == self.worker_id,
+                                              Job.status == "running")
+                            .values(status="queued", stage="interrupted", lease_owner=None, lease_expires=None,
+                                    enqueued_at=None, attempts=Job.attempts - 1, attempt_log=logs))
+            s.commit()
+        if res.rowcount != 1:
+            log.warning("job %s: lease lost before the re-queue", self.job_id)
+            return "lease_lost"
+        log.warning("job %s re-queued: the worker is shutting down; it resumes from its checkpoint", self.job_id)
+        return "requeued"
 
     def finish(self, status: str, error: Optional[str], result: Optional[dict]) -> str:
         now = utcnow()

@@ -20,15 +20,16 @@ from fastapi.responses import FileResponse, JSONResponse, Response, StreamingRes
 from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 
+from jobstore.models import ACTIVE, TERMINAL, Job, new_id, utcnow
+from jobstore.queue import enqueue
+
 from ..auth import check_ticket, make_ticket
-from ..db import ACTIVE, TERMINAL, Job, new_id, utcnow
 from ..deps import CredsDep, OwnerDep, ServiceDep, owner_from_header
 from ..errors import ApiError, not_found
 from ..metrics_index import METRICS
-from ..queue import enqueue
 from ..schemas import (Artifact, ArtifactList, ErrorBody, JobList, JobPublic, MetricsPage, Ticket)
-from ..uploads import (MB, check_and_extract_zip, check_images, dataset_root, parse_config,
-                       receive_multipart, validate_dataset)
+from ..uploads import check_images, dataset_root, parse_config, receive_multipart, validate_dataset
+from ..zip_safety import MB, check_and_extract_zip
 
 log = logging.getLogger("nepf.api")
 router = APIRouter(tags=["jobs"])
@@ -43,6 +44,10 @@ CONTENT_TYPES = {".glb": "model/gltf-binary", ".gltf": "model/gltf+json", ".ply"
                  ".exr": "image/x-exr", ".npz": "application/octet-stream", ".npy": "application/octet-stream",
                  ".txt": "text/plain; charset=utf-8", ".csv": "text/csv; charset=utf-8",
                  ".mp4": "video/mp4", ".html": "text/html; charset=utf-8", ".pt": "application/octet-stream"}
+
+
+#: every media type the artifact route serves (declared in its OpenAPI 200 response)
+ARTIFACT_MEDIA_TYPES = sorted({t.split(";")[0] for t in CONTENT_TYPES.values()})
 
 
 def content_type_for(path: str) -> str:
@@ -101,7 +106,7 @@ MULTIPART_DOC = {
                             "description": "A .zip of a DTU, Blender or instant-ngp dataset folder."},
                 "config": {"type": "string", "description":
                            'JSON object: {"preset": "fast|paper|tiny", "iters": int, '
-                           '"time_budget_s": number, "name": str}'},
+                           '"time_budget_s": number, "name": str, "max_image_side": int (<= NEPF_MAX_IMAGE_SIDE)}'},
             }}}},
     }
 }
@@ -110,18 +115,15 @@ MULTIPART_DOC = {
 @router.post("/jobs", status_code=202, response_model=JobPublic, openapi_extra=MULTIPART_DOC,
              responses={**ERRORS, 409: {"model": ErrorBody}, 413: {"model": ErrorBody},
                         415: {"model": ErrorBody},
-                        422: {"model": ErrorBody, "description": "Rejected upload or invalid dataset"}},
+                        422: {"model": ErrorBody, "description": "Rejected upload or invalid dataset"},
+                        507: {"model": ErrorBody, "description": "The server ran out of disk space"}},
              summary="Upload a dataset zip and queue a training job")
 async def create_job(request: Request, svc: ServiceDep, owner: OwnerDep,
                      idempotency_key: Annotated[Optional[str], Header(alias="Idempotency-Key")] = None):
     settings = svc.settings
     if idempotency_key is not None and not (0 < len(idempotency_key) <= 200 and idempotency_key.isprintable()):
         raise ApiError(422, "invalid_idempotency_key", "Idempotency-Key must be 1-200 printable characters")
-    max_bytes = int(settings.max_upload_mb * MB)
-    cl = request.headers.get("content-length")
-    if cl and cl.isdigit() and int(cl) > max_bytes + MB:
-        raise ApiError(413, "upload_too_large",
-                       f"upload exceeds the {settings.max_upload_mb:g} MB cap (NEPF_MAX_UPLOAD_MB)")
+    max_bytes = int(settings.max_upload_mb * MB)   # the whole body is capped by api.body_limit
     staging = settings.uploads_path / new_id()
     staging.mkdir(parents=True)
     job_dir: Optional[Path] = None
@@ -139,7 +141,7 @@ async def create_job(request: Request, svc: ServiceDep, owner: OwnerDep,
             up.zip_path.unlink()
             check_images(extract, members, settings)
             root = dataset_root(extract)
-            return root, validate_dataset(root, settings)
+            return root, validate_dataset(root, settings, settings.job_max_side(cfg.get("max_image_side")))
 
         root, summary = await run_in_threadpool(heavy)
         job_id = new_id()
@@ -363,7 +365,7 @@ def safe_artifact_path(base: Path, rel: str) -> Optional[Path]:
 
 
 @router.get("/jobs/{job_id}/artifacts/{path:path}", responses={**ERRORS, 200: {
-    "content": {"application/octet-stream": {}}, "description": "The file, with its content type"}},
+    "content": {t: {} for t in ARTIFACT_MEDIA_TYPES}, "description": "The file, with its content type"}},
     response_class=FileResponse, summary="Download one artifact (asset.glb, textures, previews, metrics...)")
 def get_artifact(job_id: str, path: str, svc: ServiceDep, owner: OwnerDep):
     job = _load(svc, owner, job_id)

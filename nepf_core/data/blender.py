@@ -7,7 +7,9 @@ Layout: ``transforms_{train,test,val}.json`` beside the image folders, with
       and instant-ngp assumes: ``Scene``'s convention, so no shift). Any of these keys may
       also appear per frame, overriding the top level (instant-ngp allows it).
     * ``frames[].file_path``: relative to the JSON file, extension optional
-      (``./train/r_0`` -> tries ``.png``, ``.jpg``, ``.jpeg``).
+      (``./train/r_0`` -> tries ``.png``, ``.jpg``, ``.jpeg``). It must resolve inside the
+      dataset folder (``paths.py``): an absolute path, a ``../..`` escape or a symbolic link
+      out of the folder is ``path_outside_dataset``.
     * ``frames[].transform_matrix``: camera-to-world in the OpenGL convention
       (x right, y up, z backward); ``c2w_cv = c2w_gl @ diag(1, -1, -1, 1)``.
     * OpenCV distortion ``k1, k2, p1, p2`` (``k3``) is undone while reading (see ``ingp.py``).
@@ -30,15 +32,17 @@ import math
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from nepf_core.data.errors import DatasetError
-from nepf_core.data.images import (SUPPORTED_EXTS, ViewSpec, box_downscale, is_image_name,
-                                   load_view_pixels, looks_like_image, read_image, rel)
+from nepf_core.data.budget import check_total_pixels, image_size
+from nepf_core.data.images import (SUPPORTED_EXTS, box_downscale, is_image_name, looks_like_image,
+                                   read_image)
 from nepf_core.data.normalize import (Normalization, c2w_to_normalized, check_c2w,
                                       check_intrinsics, normalization_from_cameras,
                                       opengl_to_opencv)
+from nepf_core.data.paths import dataset_path, existing_file, rel
 from nepf_core.data.scene import Scene
+from nepf_core.data.views import ViewSpec, load_view_pixels
 
 SPLITS = ("train", "test", "val")
 #: Long side of the masks used to estimate the normalisation.
@@ -51,8 +55,8 @@ def split_file(root: Path, split: str) -> Path:
 
 
 def is_blender(root: Path) -> bool:
-    """True when ``root`` holds any ``transforms_{train,test,val}.json``."""
-    return any(split_file(root, s).is_file() for s in SPLITS)
+    """True when ``root`` holds any ``transforms_{train,test,val}.json`` (inside ``root``)."""
+    return any(existing_file(root, split_file(root, s).name) is not None for s in SPLITS)
 
 
 def read_json(path: Path, root: Path) -> dict:
@@ -65,19 +69,27 @@ def read_json(path: Path, root: Path) -> dict:
         raise DatasetError(f"invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}", file=label,
                            code="bad_json") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise DatasetError(f"cannot read JSON file: {e}", file=label, code="bad_json") from None
+        why = e.strerror if isinstance(e, OSError) and e.filename else e  # never the server path
+        raise DatasetError(f"cannot read JSON file: {why}", file=label, code="bad_json") from None
     if not isinstance(meta, dict):
         raise DatasetError("the JSON file must hold an object with a 'frames' list", file=label,
                            code="bad_json")
     return meta
 
 
-def resolve_image(json_dir: Path, file_path: str, root: Path, view: int) -> Path:
+def resolve_image(json_dir: Path, file_path: str, root: Path, view: int, json_label: str | None = None
+                  ) -> Path:
     """Find a frame's image: the path as given, else with ``.png``/``.jpg``/``.jpeg`` appended.
 
-    Raises ``unsupported_image`` for an existing non-PNG/JPEG image, ``missing_image`` otherwise.
+    Every candidate must resolve inside ``root`` (checked before it is looked up, see
+    ``paths.py``): else ``path_outside_dataset`` naming ``json_label``, the frame and
+    ``file_path`` as written. Then ``unsupported_image`` for an existing non-PNG/JPEG image,
+    ``missing_image`` otherwise; labels are relative to ``root``.
     """
-    p = (json_dir / file_path)
+    def candidate(written: str) -> Path:
+        return dataset_path(root, written, base=json_dir, file=json_label, view=view)
+
+    p = candidate(file_path)
     if p.is_file():
         if is_image_name(p.name):
             return p
@@ -85,7 +97,7 @@ def resolve_image(json_dir: Path, file_path: str, root: Path, view: int) -> Path
             raise DatasetError(f"unsupported image format '{p.suffix}' (use PNG or JPEG)",
                                file=rel(p, root), view=view, code="unsupported_image")
     for ext in SUPPORTED_EXTS + tuple(e.upper() for e in SUPPORTED_EXTS):
-        q = p.with_name(p.name + ext)
+        q = candidate(file_path + ext)
         if q.is_file():
             return q
     if looks_like_image(p.name) and not is_image_name(p.name):
@@ -107,11 +119,9 @@ def _num(d: dict, key: str, label: str, view: int | None) -> float | None:
 
 
 def _image_size(path: Path, label: str, view: int) -> tuple[int, int]:
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except Exception:  # decode errors are reported with their code when pixels are read
-        return read_image(path, label=label, view=view).shape[1::-1]
+    wh = image_size(path)
+    # unreadable headers: decode now, so the error carries its code, file and view
+    return wh if wh is not None else read_image(path, label=label, view=view).shape[1::-1]
 
 
 def frame_intrinsics(meta: dict, frame: dict, image: Path, label: str, img_label: str, view: int
@@ -159,6 +169,7 @@ def frame_intrinsics(meta: dict, frame: dict, image: Path, label: str, img_label
 def parse_transforms(json_path: Path, root: Path) -> list[ViewSpec]:
     """Parse one ``transforms*.json`` into :class:`ViewSpec` s (OpenCV c2w in the JSON's world)."""
     label = rel(json_path, root)
+    dataset_path(root, label, file=label)     # the JSON itself may be a link out of the folder
     meta = read_json(json_path, root)
     frames = meta.get("frames")
     if not isinstance(frames, list):
@@ -178,7 +189,7 @@ def parse_transforms(json_path: Path, root: Path) -> list[ViewSpec]:
             raise DatasetError("'transform_matrix' must be a 4x4 list of numbers", file=label, view=i,
                                code="bad_json")
         c2w = check_c2w(opengl_to_opencv(check_c2w(m, label=label, view=i)), label=label, view=i)
-        img = resolve_image(json_path.parent, fr["file_path"], root, i)
+        img = resolve_image(json_path.parent, fr["file_path"], root, i, label)
         img_label = rel(img, root)
         K, declared, dist = frame_intrinsics(meta, fr, img, label, img_label, i)
         specs.append(ViewSpec(image=img, label=img_label, K=K, c2w=c2w, expected_wh=declared,
@@ -211,19 +222,25 @@ def normalization_for_specs(specs: list[ViewSpec], margin: float = 1.1) -> Norma
 
 
 def load_transforms(root: Path, json_path: Path, *, fmt: str, split: str, downscale: int = 1,
-                    max_views: int | None = None, norm_json: Path | None = None) -> Scene:
+                    max_views: int | None = None, norm_json: Path | None = None,
+                    max_side: int | None = None, max_total_pixels: int | None = None) -> Scene:
     """Load one transforms JSON as a :class:`Scene`; the normalisation comes from ``norm_json``
-    (default: ``json_path`` itself). Undistorts when the JSON has distortion coefficients."""
+    (default: ``json_path`` itself). Undistorts when the JSON has distortion coefficients.
+
+    ``max_side`` (0/None: full size) is the working resolution (``views.py``);
+    ``max_total_pixels`` the decoded-pixel budget of the split (``budget.py``), checked
+    from the headers before anything is decoded."""
     from nepf_core.data.dtu import pick_views
     from nepf_core.data.ingp import undistort_image
 
     root = Path(root)
     specs = parse_transforms(json_path, root)
+    check_total_pixels([s.image for s in specs], max_total_pixels)
     norm_specs = specs if norm_json is None or norm_json == json_path else parse_transforms(norm_json, root)
     norm = normalization_for_specs(norm_specs)
     specs = [specs[i] for i in pick_views(len(specs), max_views)]
-    images, masks, Ks = load_view_pixels(specs, downscale=downscale, alpha_mask=True,
-                                         undistort=undistort_image)
+    images, masks, Ks = load_view_pixels(specs, downscale=downscale, max_side=max_side,
+                                         alpha_mask=True, undistort=undistort_image)
     wfn = norm.world_from_norm
     c2w = c2w_to_normalized(np.stack([s.c2w for s in specs]), wfn)
     extras = {"normalization": norm.method, "transforms": rel(json_path, root),
@@ -235,11 +252,13 @@ def load_transforms(root: Path, json_path: Path, *, fmt: str, split: str, downsc
 
 
 def load_blender(root: Path | str, split: str = "train", *, downscale: int = 1,
-                 max_views: int | None = None) -> Scene:
+                 max_views: int | None = None, max_side: int | None = None,
+                 max_total_pixels: int | None = None) -> Scene:
     """Load ``transforms_{split}.json`` of a NeRF-synthetic folder as a :class:`Scene`.
 
     ``split`` is ``"train"``, ``"test"`` or ``"val"``; the normalisation always comes from
-    the train split when it exists (shared frame across splits).
+    the train split when it exists (shared frame across splits). ``max_side`` and
+    ``max_total_pixels``: see :func:`load_transforms`.
     """
     root = Path(root)
     if split not in SPLITS:
@@ -250,4 +269,5 @@ def load_blender(root: Path | str, split: str = "train", *, downscale: int = 1,
                            code="missing_split")
     train = split_file(root, "train")
     return load_transforms(root, path, fmt="blender", split=split, downscale=downscale,
-                           max_views=max_views, norm_json=train if train.is_file() else path)
+                           max_views=max_views, norm_json=train if train.is_file() else path,
+                           max_side=max_side, max_total_pixels=max_total_pixels)

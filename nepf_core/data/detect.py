@@ -75,7 +75,8 @@ def detect_format(root: Path | str) -> str:
 
 
 def load_scene(root: Path | str, split: str = "train", *, downscale: int = 1,
-               max_views: int | None = None) -> Scene:
+               max_views: int | None = None, max_side: int | None = None,
+               max_total_pixels: int | None = None) -> Scene:
     """Detect the layout of ``root`` and load ``split`` as a :class:`Scene`.
 
     Args:
@@ -84,6 +85,13 @@ def load_scene(root: Path | str, split: str = "train", *, downscale: int = 1,
             as ``"train"``) for DTU and instant-ngp, which have no splits.
         downscale: integer box-filter factor (e.g. 4 for real DTU at 1600x1200).
         max_views: keep at most this many evenly spaced views.
+        max_side: working resolution: views whose long side (after ``downscale``) exceeds it
+            are area-resampled to it, intrinsics scaled to match (``views.py``); 0/None: full size.
+        max_total_pixels: refuse (``too_many_pixels``) a split whose images hold more pixels,
+            read from the headers before decoding (``budget.py``); None: no limit.
+
+    Every file the dataset names must resolve inside the dataset folder (``paths.py``).
     """
     fmt, folder = resolve_dataset(root)
-    return LOADERS[fmt](folder, split, downscale=downscale, max_views=max_views)
+    return LOADERS[fmt](folder, split, downscale=downscale, max_views=max_views, max_side=max_side,
+                        max_total_pixels=max_total_pixels)

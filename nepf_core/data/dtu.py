@@ -8,6 +8,8 @@ Layout (IDR, NeuS):
     ``image/`` (or ``images/``): PNG/JPEG sorted by name; the i-th file is view ``i``.
     ``mask/`` (or ``masks/``, optional): same count, any mode; converted to luma and
     thresholded at 127, so 3-channel soft-edged DTU masks work.
+    The camera file, the folders and every file in them must resolve inside the dataset
+    folder (``paths.py``): a symbolic link out of it is ``path_outside_dataset``.
 
 Cameras: ``P = world_mat_i @ scale_mat_i`` maps normalised points to pixels, and is
 decomposed into ``K`` and ``c2w`` (normalised frame) by :func:`decompose_projection`;
@@ -28,11 +30,14 @@ from pathlib import Path
 import numpy as np
 import scipy.linalg
 
+from nepf_core.data.budget import check_total_pixels
 from nepf_core.data.errors import DatasetError
-from nepf_core.data.images import ViewSpec, list_images, load_view_pixels, rel
+from nepf_core.data.images import list_images
 from nepf_core.data.normalize import (c2w_to_normalized, check_intrinsics,
                                       normalization_from_cameras)
+from nepf_core.data.paths import existing_dir, existing_file, rel
 from nepf_core.data.scene import Scene
+from nepf_core.data.views import ViewSpec, load_view_pixels
 
 CAMERA_FILES = ("cameras_sphere.npz", "cameras.npz")
 IMAGE_DIRS = ("image", "images")
@@ -40,18 +45,18 @@ MASK_DIRS = ("mask", "masks")
 
 
 def find_camera_file(root: Path) -> Path | None:
-    """The first of :data:`CAMERA_FILES` present in ``root``, or None."""
+    """The first of :data:`CAMERA_FILES` present in ``root`` (inside it), or None."""
     for name in CAMERA_FILES:
-        if (root / name).is_file():
-            return root / name
+        if (p := existing_file(root, name)) is not None:
+            return p
     return None
 
 
 def find_dir(root: Path, names: tuple[str, ...]) -> Path | None:
-    """The first existing sub-folder of ``root`` among ``names``, or None."""
+    """The first existing sub-folder of ``root`` among ``names`` (inside it), or None."""
     for name in names:
-        if (root / name).is_dir():
-            return root / name
+        if (p := existing_dir(root, name)) is not None:
+            return p
     return None
 
 
@@ -98,13 +103,28 @@ def decompose_projection(P: np.ndarray, *, label: str | None = None, view: int |
 
 
 def read_camera_npz(path: Path, root: Path) -> dict[str, np.ndarray]:
-    """Load the npz as a dict (``unreadable_cameras`` on failure)."""
+    """Load the npz as a dict (``unreadable_cameras`` on failure).
+
+    An ``.npz`` is a zip of ``.npy`` arrays: anything else (a stray ``.npy``, a pickle, junk)
+    is reported as "not a valid .npz", never as pickled data; pickled arrays inside a real
+    npz are refused (``allow_pickle=False``)."""
     label = rel(path, root)
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(4)
+    except OSError as e:
+        raise DatasetError(f"cannot read camera file: {e.strerror}", file=label,
+                           code="unreadable_cameras") from None
+    # numpy.load treats any file that is not a zip or .npy as a pickle: test the zip magic first
+    if magic not in (b"PK\x03\x04", b"PK\x05\x06") or not zipfile.is_zipfile(path):
+        raise DatasetError("not a valid .npz file (expected a zip of .npy arrays, as numpy.savez writes)",
+                           file=label, code="unreadable_cameras")
     try:
         with np.load(path, allow_pickle=False) as z:
             return {k: np.asarray(z[k]) for k in z.files}
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
-        raise DatasetError(f"cannot read camera file: {e}", file=label, code="unreadable_cameras") from None
+        why = e.strerror if isinstance(e, OSError) and e.filename else e  # never the server path
+        raise DatasetError(f"cannot read camera file: {why}", file=label, code="unreadable_cameras") from None
 
 
 def _as_4x4(m: np.ndarray, key: str, label: str, view: int) -> np.ndarray:
@@ -200,19 +220,23 @@ def pick_views(n: int, max_views: int | None) -> np.ndarray:
 
 
 def load_dtu(root: Path | str, split: str = "train", *, downscale: int = 1,
-             max_views: int | None = None) -> Scene:
+             max_views: int | None = None, max_side: int | None = None,
+             max_total_pixels: int | None = None) -> Scene:
     """Load a DTU/IDR/NeuS folder as a :class:`Scene` (see module docstring).
 
     DTU folders have no splits: ``split`` must be ``"train"`` or ``"all"`` and every view
-    is returned. ``max_views`` keeps evenly spaced views (:func:`pick_views`).
+    is returned. ``max_views`` keeps evenly spaced views (:func:`pick_views`); ``max_side``
+    is the working resolution (0/None: full size, ``views.py``) and ``max_total_pixels`` the
+    decoded-pixel budget, checked from the image headers before decoding (``budget.py``).
     """
     root = Path(root)
     if split not in ("train", "all"):
         raise DatasetError(f"DTU folders have no '{split}' split (all views are training views)",
                            file=".", code="missing_split")
     specs, scale, info = parse_dtu(root)
+    check_total_pixels([s.image for s in specs], max_total_pixels)
     specs = [specs[i] for i in pick_views(len(specs), max_views)]
-    images, masks, Ks = load_view_pixels(specs, downscale=downscale)
+    images, masks, Ks = load_view_pixels(specs, downscale=downscale, max_side=max_side)
     c2w = np.stack([s.c2w for s in specs])
     if scale is not None:
         wfn = scale

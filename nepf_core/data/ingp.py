@@ -32,14 +32,15 @@ import numpy as np
 from scipy import ndimage
 
 from nepf_core.data.errors import DatasetError
+from nepf_core.data.paths import existing_file
 from nepf_core.data.scene import Scene
 
 TRANSFORMS = "transforms.json"
 
 
 def is_ingp(root: Path) -> bool:
-    """True when ``root`` holds ``transforms.json``."""
-    return (Path(root) / TRANSFORMS).is_file()
+    """True when ``root`` holds ``transforms.json`` (inside ``root``, see ``paths.py``)."""
+    return existing_file(root, TRANSFORMS) is not None
 
 
 def distort_points(xy: np.ndarray, coeffs: tuple) -> np.ndarray:
@@ -124,10 +125,13 @@ def distort_image(img: np.ndarray, K: np.ndarray, coeffs: tuple) -> np.ndarray:
 
 
 def load_ingp(root: Path | str, split: str = "train", *, downscale: int = 1,
-              max_views: int | None = None) -> Scene:
+              max_views: int | None = None, max_side: int | None = None,
+              max_total_pixels: int | None = None) -> Scene:
     """Load an instant-ngp ``transforms.json`` folder as a :class:`Scene` (all frames).
 
     instant-ngp folders have no splits: ``split`` must be ``"train"`` or ``"all"``.
+    ``max_side`` (working resolution) and ``max_total_pixels`` (decoded-pixel budget): see
+    :func:`nepf_core.data.blender.load_transforms`.
     """
     from nepf_core.data.blender import load_transforms, read_json
 
@@ -137,7 +141,7 @@ def load_ingp(root: Path | str, split: str = "train", *, downscale: int = 1,
                            file=TRANSFORMS, code="missing_split")
     path = root / TRANSFORMS
     scene = load_transforms(root, path, fmt="ingp", split=split, downscale=downscale,
-                            max_views=max_views)
+                            max_views=max_views, max_side=max_side, max_total_pixels=max_total_pixels)
     meta = read_json(path, root)
     if "aabb_scale" in meta:
         scene.extras["aabb_scale"] = meta["aabb_scale"]

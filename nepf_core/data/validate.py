@@ -1,22 +1,29 @@
 """Validate an uploaded dataset without importing torch.
 
-``python -m nepf_core.data.validate DIR`` prints one JSON line and exits 0 when the dataset
-loads::
+``python -m nepf_core.data.validate [--max-side PX] [--max-total-pixels N] DIR`` prints one
+JSON line and exits 0 when the dataset loads::
 
     {"ok": true, "format": "dtu", "n_views": 49, "width": 1600, "height": 1200,
-     "has_masks": true, "splits": {"train": 49}, "root": "sub/folder"}
+     "working_width": 1600, "working_height": 1200, "has_masks": true,
+     "splits": {"train": 49}, "total_pixels": 94080000, "root": "sub/folder"}
 
 or exits 2 with ``{"ok": false, "errors": [DatasetError.to_dict(), ...]}``.
 
-Everything a loader would reject is checked: the layout, the metadata, every camera, and
-every image and mask decoded one at a time (nothing is kept, so memory stays at one
-view). Structural errors stop the check; per-view errors are collected (at most
-:data:`MAX_ERRORS`). ``n_views``/``width``/``height`` describe the training split.
+Everything a loader would reject is checked: the layout, the metadata, every camera, that
+every referenced file lies inside the folder (``paths.py``), the decoded-pixel budget of
+all splits together from the image headers (``budget.py``, before any decoding), and every
+image and mask decoded one at a time and brought to the working resolution ``max_side``
+(nothing is kept, so memory stays at one view). Structural errors stop the check;
+per-view errors are collected (at most :data:`MAX_ERRORS`). ``n_views``/``width``/
+``height`` (full size) and ``working_width``/``working_height`` (the size a job trains
+at) describe the training split. No message carries the folder's absolute path.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -38,15 +45,25 @@ def _split_specs(fmt: str, folder: Path) -> dict[str, list]:
     return {"train": parse_transforms(folder / TRANSFORMS, folder)}
 
 
-def validate_dataset(root: str | Path) -> dict:
-    """Check a dataset folder; returns the JSON-ready result described in the module docstring."""
+def validate_dataset(root: str | Path, *, max_side: int | None = None,
+                     max_total_pixels: int | None = None) -> dict:
+    """Check a dataset folder; returns the JSON-ready result described in the module docstring.
+
+    ``max_side``: the working resolution a job would load at (0/None: full size);
+    ``max_total_pixels``: the decoded-pixel budget of all splits together (None: none).
+    """
+    from nepf_core.data.budget import check_total_pixels
     from nepf_core.data.detect import resolve_dataset
-    from nepf_core.data.images import check_same_alpha, check_same_size, read_view
+    from nepf_core.data.resample import grid_scale
+    from nepf_core.data.views import check_max_side, check_same_alpha, check_same_size, read_view
 
     errors: list[dict] = []
     try:
+        max_side = check_max_side(max_side)
         fmt, folder = resolve_dataset(root)
         splits = _split_specs(fmt, folder)
+        images = list(dict.fromkeys(s.image for specs in splits.values() for s in specs))
+        total_pixels = check_total_pixels(images, max_total_pixels)
     except DatasetError as e:
         return {"ok": False, "errors": [e.to_dict()]}
     summary = {}
@@ -55,7 +72,7 @@ def validate_dataset(root: str | Path) -> dict:
         has_masks = None
         for i, s in enumerate(specs):
             try:
-                _, mask, wh, has_alpha = read_view(s, i, alpha_mask=fmt != "dtu",
+                _, mask, wh, has_alpha = read_view(s, i, max_side=max_side, alpha_mask=fmt != "dtu",
                                                    same_as=first and first[0])
                 if first is None:
                     first = (wh, has_alpha)
@@ -68,30 +85,48 @@ def validate_dataset(root: str | Path) -> dict:
                 if len(errors) >= MAX_ERRORS:
                     break
         if first is not None:
+            (ww, wh_), _ = grid_scale(*first[0], 1, max_side)
             summary[name] = {"n_views": len(specs), "width": first[0][0], "height": first[0][1],
-                             "has_masks": bool(has_masks)}
+                             "working_width": ww, "working_height": wh_, "has_masks": bool(has_masks)}
         if len(errors) >= MAX_ERRORS:
             break
     if errors:
         return {"ok": False, "errors": errors}
     main = summary.get("train") or next(iter(summary.values()))
     rel_root = Path(folder).resolve().relative_to(Path(root).resolve()).as_posix()
-    return {"ok": True, "format": fmt, **main,
-            "splits": {k: v["n_views"] for k, v in summary.items()}, "root": rel_root}
+    return {"ok": True, "format": fmt, **main, "splits": {k: v["n_views"] for k, v in summary.items()},
+            "total_pixels": total_pixels, "root": rel_root}
+
+
+def scrub_paths(result: dict, root: str | Path) -> dict:
+    """``result`` with the dataset folder's absolute path (as given and resolved) replaced by
+    ``<dataset>`` in every error message and file: a message from deep inside a library
+    (an ``OSError``) must not reveal where the server keeps uploads."""
+    spellings = sorted({os.path.abspath(root), str(Path(root).resolve())}, key=len, reverse=True)
+    for err in result.get("errors") or []:
+        for key in ("message", "file"):
+            if isinstance(err.get(key), str):
+                for s in spellings:
+                    err[key] = err[key].replace(s, "<dataset>")
+    return result
 
 
 def main(argv: list[str] | None = None) -> int:
     """CLI: print the JSON result of :func:`validate_dataset`; exit 0 (ok) or 2 (invalid)."""
-    argv = sys.argv[1:] if argv is None else argv
-    if len(argv) != 1:
-        print("usage: python -m nepf_core.data.validate DIR", file=sys.stderr)
+    ap = argparse.ArgumentParser(prog="python -m nepf_core.data.validate")
+    ap.add_argument("dir")
+    ap.add_argument("--max-side", type=int, default=0, help="working resolution (0: full size)")
+    ap.add_argument("--max-total-pixels", type=int, default=None, help="decoded-pixel budget")
+    try:
+        a = ap.parse_args(sys.argv[1:] if argv is None else argv)
+    except SystemExit:
         return 64
     try:
-        result = validate_dataset(argv[0])
+        result = validate_dataset(a.dir, max_side=a.max_side, max_total_pixels=a.max_total_pixels)
     except Exception as e:  # a bug must still answer in JSON, never with a traceback
         result = {"ok": False, "errors": [{"code": "internal_error", "message": f"{type(e).__name__}: {e}",
                                            "file": None, "view": None}]}
-    print(json.dumps(result))
+    print(json.dumps(scrub_paths(result, a.dir)))
     return 0 if result["ok"] else 2
 
 

@@ -7,7 +7,6 @@ Prints ``{"written": [names]}`` as its last stdout line; exit 3 = unusable input
 from __future__ import annotations
 
 import json
-import os
 import sys
 from pathlib import Path
 
@@ -44,9 +43,6 @@ def main(job_path: str) -> int:
     if problems:
         print("; ".join(problems), file=sys.stderr)
         return BAD_JOB
-    if os.environ.get("NEPF_PREVIEW_TEST_CRASH") == "1":  # test hook: a native crash in VTK
-        import signal
-        os.kill(os.getpid(), signal.SIGSEGV)
 
     import pyvista as pv
     from PIL import Image

@@ -12,6 +12,12 @@ then ``vtkEGLRenderWindow`` (Mesa EGL, software llvmpipe), then
 ``vtkOSOpenGLRenderWindow`` (OSMesa). On Debian 12 these need the packages in
 ``.ci/apt-packages.txt``: ``libegl1 libegl-mesa0 libgl1-mesa-dri`` (EGL) and ``libosmesa6``
 (OSMesa); no X server.
+
+The child's entry point is a parameter, ``renderer_script`` (default :data:`PREVIEW_CHILD`):
+any script with the same contract can stand in, e.g. one that crashes natively, to check that
+a crash costs only the previews (``tests/test_export_parts.py``). Contract: run as
+``python SCRIPT JOB.json``; print ``{"written": [names in out_dir]}`` as the last stdout line and
+exit 0; exit :data:`~nepf_core.export._preview_child.BAD_JOB` (3) for unusable inputs.
 """
 
 from __future__ import annotations
@@ -28,9 +34,10 @@ import numpy as np
 
 from ._preview_child import BAD_JOB as _BAD_JOB
 
-__all__ = ["render_previews", "BACKENDS", "BACKGROUND"]
+__all__ = ["render_previews", "BACKENDS", "BACKGROUND", "PREVIEW_CHILD"]
 
-_CHILD = Path(__file__).with_name("_preview_child.py")
+PREVIEW_CHILD = Path(__file__).with_name("_preview_child.py")
+"""The VTK renderer run in the child process (the default ``renderer_script``)."""
 
 BACKENDS = ("vtkEGLRenderWindow", "vtkOSOpenGLRenderWindow")
 """Headless VTK render windows tried in order (after ``$VTK_DEFAULT_OPENGL_WINDOW``)."""
@@ -53,6 +60,7 @@ def render_previews(
     up: tuple[float, float, float] = (0.0, 0.0, 1.0),
     timeout_s: float = 240.0,
     log: Callable[[str], None] = print,
+    renderer_script: str | Path = PREVIEW_CHILD,
 ) -> list[Path]:
     """Render previews in a subprocess; returns the written PNG paths ([] on failure).
 
@@ -62,6 +70,7 @@ def render_previews(
         out_dir: the run folder (PNGs go to ``out_dir/previews``).
         lights: the ``lights.json`` dict (for the relit view), optional.
         up: world up axis for the orbit (the synthetic scenes are Z-up).
+        renderer_script: the child's entry point (see the module docstring for its contract).
     """
     out_dir = Path(out_dir)
     prev_dir = out_dir / "previews"
@@ -86,7 +95,7 @@ def render_previews(
         for backend in backends:
             env = dict(os.environ, VTK_DEFAULT_OPENGL_WINDOW=backend, PYVISTA_OFF_SCREEN="true")
             try:
-                proc = subprocess.run([sys.executable, str(_CHILD), str(job_path)],
+                proc = subprocess.run([sys.executable, str(renderer_script), str(job_path)],
                                       env=env, capture_output=True, text=True, timeout=timeout_s)
             except subprocess.TimeoutExpired:
                 errors.append(f"{backend}: timed out after {timeout_s:.0f} s")

@@ -1,8 +1,8 @@
 """Multi-resolution dense grid encoding (the `fast` preset's SDF input) and a sphere prior.
 
 Why dense grids and not a hash grid: on the 2-core CPU target a pure-torch hash grid
-costs ~7x more per forward+backward than ``F.grid_sample`` on a few dense volumes; see
-``docs/FAST.md`` and ``bench/encodings.py`` for the measured table.
+costs several times more per forward+backward than ``F.grid_sample`` on a few dense volumes
+(docs/FAST.md).
 
 Conventions
 -----------
@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["GridConfig", "MultiResGrid", "sphere_sdf", "SphereInitSDF"]
+__all__ = ["GridConfig", "MultiResGrid", "sphere_sdf"]
 
 
 @dataclass
@@ -133,40 +133,6 @@ class MultiResGrid(nn.Module):
             feats.append(g.new_zeros(n_off * self.cfg.features_per_level, n))
         return torch.cat(feats, 0).t()
 
-    # -- regularisers ---------------------------------------------------------------
-    def tv_loss(self, n_cells: int | None = None, active_only: bool = True) -> Tensor:
-        """Total variation (squared forward differences) of the grids.
-
-        ``TV = sum_l mean_{cells, axes, channels} (V_l[i+e_a] - V_l[i])^2 / h_l^2 * h_0^2``.
-        Differences are divided by the cell size (a gradient estimate) and rescaled to the
-        coarsest level's units so that all levels penalise the *slope* equally.
-        ``n_cells``: if given, use that many random cells per level (an unbiased
-        estimate of the full mean; the cost no longer grows with ``R^3``).
-        Returns a scalar.
-        """
-        h0 = self.cell_size(0)
-        levels = range(self.active_levels if active_only else self.cfg.n_levels)
-        total = self.grids[0].new_zeros(())
-        for level in levels:
-            v = self.grids[level][0]  # [F, R, R, R]
-            r = v.shape[-1]
-            scale = (h0 / self.cell_size(level)) ** 2
-            if n_cells is None or n_cells >= (r - 1) ** 3:
-                dz = v[:, 1:, :, :] - v[:, :-1, :, :]
-                dy = v[:, :, 1:, :] - v[:, :, :-1, :]
-                dx = v[:, :, :, 1:] - v[:, :, :, :-1]
-                tv = (dz.square().mean() + dy.square().mean() + dx.square().mean()) / 3.0
-            else:
-                # one index_select per level (a single dense grad buffer in backward)
-                idx = torch.randint(0, r - 1, (3, n_cells), device=v.device)
-                flat = (idx[0] * r + idx[1]) * r + idx[2]  # [n] (z, y, x) -> flat
-                nb = torch.stack([flat, flat + r * r, flat + r, flat + 1])  # centre, +z, +y, +x
-                vals = v.reshape(v.shape[0], -1).index_select(1, nb.reshape(-1))
-                vals = vals.view(v.shape[0], 4, n_cells)
-                tv = (vals[:, 1:] - vals[:, :1]).square().mean()
-            total = total + scale * tv
-        return total
-
 
 def sphere_sdf(x: Tensor, radius: float | Tensor = 0.5) -> Tensor:
     """Analytic sphere SDF ``f(x) = |x| - radius``; ``x [..., 3] -> [...]``.
@@ -176,51 +142,3 @@ def sphere_sdf(x: Tensor, radius: float | Tensor = 0.5) -> Tensor:
     ``r`` with ``|grad f| = 1`` everywhere (eikonal-exact) and the normals pointing out.
     """
     return torch.linalg.vector_norm(x, dim=-1) - radius
-
-
-class SphereInitSDF(nn.Module):
-    """Reference grid SDF: ``sdf(x) = |x| - r + head([enc(x), x])[..., 0]``.
-
-    ``head`` is any module mapping ``enc.n_output_dims + 3`` -> ``1 + n_feat`` channels
-    (output 0 is the SDF residual, the rest is a geometry feature for the radiance
-    network). If ``head`` is None, a ReLU MLP with ``n_hidden`` layers of ``width`` is
-    built; its last layer's SDF row is zero-initialised so ``sdf == sphere_sdf`` at
-    step 0. The project's SDF field should pass a head from the shared MLP builder
-    instead; this class documents the combination and is used by benchmarks and tests.
-
-    ``forward(x [N,3]) -> (sdf [N], feat [N, n_feat])``; ``sdf_only(x) -> [N]``.
-    """
-
-    def __init__(
-        self,
-        grid: MultiResGrid,
-        radius: float = 0.5,
-        width: int = 64,
-        n_hidden: int = 1,
-        n_feat: int = 0,
-        head: nn.Module | None = None,
-    ):
-        super().__init__()
-        self.grid = grid
-        self.radius = radius
-        self.n_feat = n_feat
-        if head is None:
-            d_in = grid.n_output_dims + 3
-            layers: list[nn.Module] = []
-            for _ in range(n_hidden):
-                layers += [nn.Linear(d_in, width), nn.ReLU(inplace=True)]
-                d_in = width
-            last = nn.Linear(d_in, 1 + n_feat)
-            with torch.no_grad():
-                last.weight[0].zero_()
-                last.bias[0] = 0.0
-            layers.append(last)
-            head = nn.Sequential(*layers)
-        self.head = head
-
-    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        h = self.head(torch.cat([self.grid(x), x], dim=-1))
-        return sphere_sdf(x, self.radius) + h[:, 0], h[:, 1:]
-
-    def sdf_only(self, x: Tensor) -> Tensor:
-        return self.forward(x)[0]

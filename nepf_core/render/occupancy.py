@@ -1,9 +1,9 @@
-"""SDF-driven occupancy grid and empty-space-skipping ray sampler (the `fast` preset).
+"""SDF-driven occupancy grid (the `fast` preset): which rays meet no occupied cell.
 
 Occupancy rule (never culls the surface, given the stated assumptions)
 ---------------------------------------------------------------------
 Cells are the ``R^3`` cubes of side ``h = 2*bound/R`` tiling ``[-bound, bound]^3``, with
-centres ``c``. The sampler marches each ray in segments of length ``<= delta`` (the march
+centres ``c``. :meth:`OccupancyGrid.ray_hits` marches each ray in segments of length ``<= delta`` (the march
 step, ``delta = march_ratio * h``) and looks up the cell of each segment's *midpoint* ``m``.
 Every point ``p`` of the segment satisfies ``|p - c| <= |p - m| + |m - c| <= delta/2 + r_h``
 with ``r_h = sqrt(3) h / 2`` the cell half-diagonal. If the SDF is ``L``-Lipschitz
@@ -41,7 +41,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-__all__ = ["OccupancyConfig", "OccupancyGrid", "RaySamples", "ray_aabb"]
+__all__ = ["OccupancyConfig", "OccupancyGrid", "ray_aabb"]
 
 
 @dataclass
@@ -66,18 +66,6 @@ class OccupancyConfig:
     """Cell centres per SDF call during an update."""
 
 
-@dataclass
-class RaySamples:
-    """Output of :meth:`OccupancyGrid.sample_along_rays` (B rays, S samples)."""
-
-    t_vals: Tensor
-    """[B, S] sorted sample distances, in [near, far]."""
-    hit_any: Tensor
-    """[B] bool: the ray crosses at least one occupied march segment."""
-    skip_fraction: Tensor
-    """[B] fraction of [near, far] that was skipped (1 for rays with no hit)."""
-
-
 def ray_aabb(rays_o: Tensor, rays_d: Tensor, bound: float) -> tuple[Tensor, Tensor]:
     """Slab test against ``[-bound, bound]^3``: ``(t_in [B], t_out [B])``; miss iff ``t_out <= t_in``.
 
@@ -94,7 +82,7 @@ def ray_aabb(rays_o: Tensor, rays_d: Tensor, bound: float) -> tuple[Tensor, Tens
 
 
 class OccupancyGrid(nn.Module):
-    """Binary occupancy over ``[-bound, bound]^3`` from an SDF, plus a skipping sampler.
+    """Binary occupancy over ``[-bound, bound]^3`` from an SDF, and the rays that meet it.
 
     Buffers (move with ``.to()``, saved in ``state_dict``):
     ``sdf_abs [R^3]`` float (last |f| at cell centres, 0 = never evaluated) and
@@ -201,10 +189,13 @@ class OccupancyGrid(nn.Module):
         self.n_updates += 1
         return {"occupied_fraction": self.occupied_fraction(), "threshold": thr, "n_evaluated": idx.numel()}
 
-    # -- sampling -------------------------------------------------------------------
+    # -- rays -----------------------------------------------------------------------
     def _march(self, rays_o: Tensor, rays_d: Tensor, near: Tensor, far: Tensor, n_march: int | None):
-        """Steps 1-2 of :meth:`sample_along_rays`: ``(edges [B, M+1], occupied w [B, M] bool,
-        t0 [B], t1 [B], s [M+1])``."""
+        """Clip ``[near, far]`` to the grid's AABB -> ``[t0, t1]``, split it into ``M`` equal
+        segments (``M = n_march`` or ``ceil(2 sqrt(3) bound / delta)``, so each segment is
+        ``<= delta`` when ``|d| = 1``; for ``|d| != 1`` pass ``n_march >= 2 sqrt(3) bound |d|_max /
+        delta``) and look up the occupancy at their midpoints. Returns ``(edges [B, M+1],
+        occupied w [B, M] bool, t0 [B], t1 [B], s [M+1])``."""
         t_in, t_out = ray_aabb(rays_o, rays_d, self.cfg.bound)
         t0 = torch.maximum(near, t_in)
         t1 = torch.minimum(far, t_out)
@@ -222,68 +213,6 @@ class OccupancyGrid(nn.Module):
     def ray_hits(self, rays_o: Tensor, rays_d: Tensor, near: Tensor, far: Tensor,
                  n_march: int | None = None) -> Tensor:
         """``[B]`` bool: the ray crosses at least one occupied march segment in ``[near, far]``
-        (the same march as :meth:`sample_along_rays`, whose ``hit_any`` it equals)."""
+        (``rays_o, rays_d [B, 3]``, ``near, far [B]``). By rule (1) a ray that crosses none meets
+        no surface: its opacity is ``<= ~e^{-k_s}``."""
         return self._march(rays_o, rays_d, near, far, n_march)[1].any(1)
-
-    @torch.no_grad()
-    def sample_along_rays(
-        self,
-        rays_o: Tensor,
-        rays_d: Tensor,
-        near: Tensor,
-        far: Tensor,
-        n_samples: int,
-        perturb: bool = False,
-        n_march: int | None = None,
-    ) -> RaySamples:
-        """Spend ``n_samples`` per ray inside occupied march segments.
-
-        ``rays_o, rays_d [B,3]`` (``d`` need not be unit; t is in units of ``|d|``),
-        ``near, far [B]``. Steps:
-
-        1. clip ``[near, far]`` to the grid's AABB -> ``[t0, t1]``;
-        2. split ``[t0, t1]`` into ``M`` equal segments (``M = n_march`` or
-           ``ceil(2 sqrt(3) bound / delta)``, so each segment is ``<= delta`` when ``|d| = 1``)
-           and look up the occupancy at their midpoints -> ``w [B,M]``;
-        3. inverse CDF of the piecewise-constant pdf ``w`` at ``u_j = (j + 0.5)/S`` (or
-           ``(j + U[0,1))/S`` with ``perturb``): samples are uniform over the occupied
-           segments, sorted, in ``[t0, t1]``.
-
-        Rays with no occupied segment (``hit_any = False``) get ``S`` samples spread
-        uniformly over ``[near, far]`` (stratified the same way), so background / mask
-        losses still see them. The guarantee of rule (1) assumes ``|d| = 1``; for
-        ``|d| != 1`` pass ``n_march >= 2 sqrt(3) bound |d|_max / delta``.
-
-        NeuS note: consecutive samples may straddle a skipped gap; compute section alphas
-        from the SDF *at the samples* (``(Phi(s f_i) - Phi(s f_{i+1})) / Phi(s f_i)``), which
-        is exact across gaps, or cap the section length used by the mid-point estimator.
-        """
-        b = rays_o.shape[0]
-        dev, dt = rays_o.device, rays_o.dtype
-        edges, w, t0, t1, s = self._march(rays_o, rays_d, near, far, n_march)
-        m = w.shape[1]
-        hit = w.any(1)
-        seg_len = (t1 - t0) / m
-        skip = 1.0 - (w.sum(1).to(dt) * seg_len) / (far - near).clamp_min(1e-12)
-        skip = torch.where(hit, skip, torch.ones_like(skip))
-        # misses: uniform over [near, far]
-        edges = torch.where(hit[:, None], edges, near[:, None] + (far - near)[:, None] * s)
-        wf = torch.where(hit[:, None], w.to(dt), torch.ones_like(w, dtype=dt))
-        cdf = torch.cumsum(wf, 1)
-        total = cdf[:, -1:]
-        cdf = torch.cat([torch.zeros_like(total), cdf], 1) / total  # [B, M+1]
-        j = torch.arange(n_samples, device=dev, dtype=dt)
-        if perturb:
-            u = (j + torch.rand(b, n_samples, device=dev, dtype=dt)) / n_samples
-        else:
-            u = ((j + 0.5) / n_samples).expand(b, n_samples)
-        u = u.contiguous()
-        k = torch.searchsorted(cdf, u, right=True).clamp(1, m)  # cdf[k-1] <= u < cdf[k]
-        c_lo = torch.gather(cdf, 1, k - 1)
-        c_hi = torch.gather(cdf, 1, k)
-        e_lo = torch.gather(edges, 1, k - 1)
-        e_hi = torch.gather(edges, 1, k)
-        frac = ((u - c_lo) / (c_hi - c_lo).clamp_min(1e-12)).clamp(0.0, 1.0)
-        t = e_lo + frac * (e_hi - e_lo)
-        t = torch.minimum(torch.maximum(t, near[:, None]), far[:, None])
-        return RaySamples(t_vals=t, hit_any=hit, skip_fraction=skip)

@@ -22,7 +22,7 @@ from torch import Tensor
 
 from nepf_core import bsdf
 from nepf_core.fields.fd_normals import sdf_gradient_fd
-from nepf_core.fields.gradients import hessian_diag_from_pairs, sdf_gradient_autograd, sdf_gradient_central
+from nepf_core.fields.gradients import sdf_gradient_autograd, sdf_gradient_central, sdf_hessian_norm
 from nepf_core.rays import RayBatch
 from nepf_core.render.neus import (alpha_from_sdf, annealed_cos, max_weight_index, surface_crossing_t,
                                    weights_from_alpha)
@@ -41,12 +41,6 @@ class RenderConfig:
     """Rounds of NeuS up-sampling (n_importance / steps samples each)."""
     perturb: bool = True
     """Jitter coarse samples during training."""
-    sampler: str = "neus"
-    """``neus`` (uniform + importance) or ``occupancy`` (occupancy-grid guided)."""
-    n_samples_occupied: int = 0
-    """Occupancy sampler: coarse samples per ray placed in the occupied cells (0: ``n_samples``).
-    Set by adaptivity from the measured occupied length of the rays (report.json,
-    ``coarse_samples``): once the occupied band is thin, fewer samples keep the same spacing."""
     normals: str = "autograd"
     """``autograd`` (double backward) or ``fd`` (central differences, 6 extra SDF calls)."""
     alpha_mode: str = "midpoint"
@@ -60,22 +54,14 @@ class RenderConfig:
     head_weight_threshold: float = 0.0
     """Evaluate radiance/photon/material only where w_i exceeds this (0: everywhere)."""
     hessian_fraction: float = 0.1
-    """Fraction of samples that get the Hessian regulariser (autograd normals only; with
-    fd normals the Hessian diagonal comes for free on every sample)."""
+    """Fraction of samples (``midpoint`` alpha mode, training) that get the Hessian regulariser
+    ``|H f|_F`` (:func:`nepf_core.fields.gradients.sdf_hessian_norm`: 6 gradient evaluations per
+    point, so 0.1 adds 0.6 gradient evaluations per sample)."""
     lambertian: bool = False
     """Use the Lambertian diffuse (paper ablation) instead of Disney + retro-reflection."""
     specular: bool = True
-    """Evaluate the GGX specular lobe (adaptivity can switch it off)."""
-    diffuse_metal_weight: float = 0.0
-    """Lobe off only: the surface is shaded as ``(1 - w m) f_d(c) + w f_s`` with this ``w``
-    (:func:`nepf_core.bsdf.shade_fading_lobe`). 0 (the default): a dielectric diffuse, metallic
-    ignored, no lobe evaluated. Adaptivity fades it from 1 to 0 after dropping the lobe, so the
-    shading does not jump (from the full BSDF to ``f_d``)."""
-    metallic_scale: float = 1.0
-    """The surface is shaded, reported and exported with metallic ``s m`` instead of the
-    network's ``m``. 1 (the default): the paper's free metallic. Adaptivity fades it to 0 when
-    the highlights' colour says the surface is a dielectric
-    (:func:`nepf_core.view_dependence.highlight_chroma`; report.json ``dielectric``)."""
+    """Start with the GGX specular lobe (fit()'s adaptivity may drop it; the lobe in effect is
+    the run state's :class:`Shading`, never written back here)."""
     unlit_albedo_stopgrad: bool = False
     """Training only: on rays whose target colour is unlit (``RayBatch.unlit``, set by fit()
     from the data), the colour error of L_vol / L_surf does not reach the albedo; only the
@@ -83,13 +69,6 @@ class RenderConfig:
     received no light carries no information on the albedo, and letting it drive the albedo
     to 0 is what made the recovered albedo black in shadows (docs/FAST.md, "Albedo in
     unlit regions")."""
-    unlit_material_stopgrad: bool = False
-    """With ``unlit_albedo_stopgrad``: on unlit rays the colour error reaches neither the
-    roughness nor the metallic either. Otherwise the optimiser explains shadows with a
-    mirror (metallic -> 1, roughness -> 0 reflects the point light away from the camera),
-    the smooth material network spreads that metal into lit regions, and there the
-    diffuse lobe, scaled by ``1 - metallic``, no longer passes gradient to the albedo: on
-    spot_textured (diffuse, roughness 0.6) metallic reached 0.65 on average in 90 s."""
     albedo_smooth_sigma: float = 0.0
     """Training only, > 0: also query the material network at ``x* + N(0, sigma^2 I)`` next
     to each max-weight point (``surf["albedo_jitter"]``) for the albedo smoothness prior
@@ -110,6 +89,20 @@ class RenderConfig:
     which at inv_s >= 1e3 changes the density a lot."""
 
 
+@dataclass(frozen=True)
+class Shading:
+    """The shading model in effect (a run's switches, :class:`nepf_core.train.run_state.RunState`).
+
+    ``specular``: evaluate the GGX lobe, ``f = f_d + f_s`` (Disney diffuse, :mod:`nepf_core.bsdf`).
+    Without it the surface is shaded as ``(1 - w m) f_d(c) + w f_s`` with
+    ``w = diffuse_metal_weight`` (:func:`nepf_core.bsdf.shade_fading_lobe`): 0 is a dielectric
+    diffuse (metallic ignored, no lobe evaluated); adaptivity fades ``w`` from 1 to 0 after
+    dropping the lobe, so the image does not jump from the full BSDF to ``f_d``."""
+
+    specular: bool = True
+    diffuse_metal_weight: float = 0.0
+
+
 @dataclass
 class RenderOutput:
     """Per-ray results (``R`` rays) and per-sample regulariser terms."""
@@ -123,7 +116,7 @@ class RenderOutput:
     eikonal: Tensor
     """``| |grad f| - 1 |`` on samples inside the unit sphere, ``[P]``."""
     hessian: Tensor
-    """``sum_i |H_ii|`` on a subset of samples, ``[Q]`` (may be empty)."""
+    """``|H f|_F`` (Frobenius norm of the SDF Hessian) on a subset of samples, ``[Q]`` (may be empty)."""
     surf: dict = field(default_factory=dict)
     """At the max-weight sample: x, normal, light_dir, intensity, albedo, roughness,
     metallic; with ``need_surface_extras`` also (no grad) specular (share of L_surf from the
@@ -131,25 +124,20 @@ class RenderOutput:
     n_samples: int = 0
     n_head_evals: int = 0
     inv_s: float = 0.0
-    skip_fraction: float | None = None
-    """Occupancy sampler only: mean over rays of the fraction of ``[near, far]`` skipped as
-    empty space (no samples placed there; 1 for rays that meet no occupied cell)."""
-    occupied_length: float | None = None
-    """Occupancy sampler only: mean over the rays that meet an occupied cell of the length of
-    ``[near, far]`` inside occupied cells, ``(1 - skip) (far - near)`` (normalised units)."""
     eikonal_weight: Tensor | None = None
     """``[P]``: the importance weight ``RayBatch.weight`` of the ray each ``eikonal`` sample
     lies on (None when the batch has no weights): the eikonal mean is then weighted like the
-    mask loss, so a batch thinned by :meth:`Adaptivity.thin_empty_rays` keeps its expectation."""
+    mask loss, so a batch thinned by :func:`nepf_core.train.rules.empty_rays.thin_empty_rays` keeps
+    its expectation."""
 
 
-def _shade_points(model, cfg: RenderConfig, xs: Tensor, vs: Tensor, ns: Tensor, fs: Tensor,
+def _shade_points(model, cfg: RenderConfig, shading: Shading, xs: Tensor, vs: Tensor, ns: Tensor, fs: Tensor,
                   unlit: Tensor | None):
     """Photon + material heads and the BSDF at ``N`` points: ``xs, vs, ns [N, 3]`` (position,
     ray direction, unit normal), ``fs [N, F]`` SDF features, ``unlit [N]`` bool or None (training:
     the colour error of an unlit point does not reach its albedo, ``RenderConfig.unlit_*``).
     Returns ``pbr [N, 3] = f(l, -v; c, r, m) I (n . l)^+`` (the fading lobe when
-    ``cfg.specular`` is off), ``light_dir [N, 3]``, ``intensity [N]``, ``albedo [N, 3]``,
+    ``shading.specular`` is off), ``light_dir [N, 3]``, ``intensity [N]``, ``albedo [N, 3]``,
     ``roughness [N]``, ``metallic [N]`` (all fp32)."""
     with torch.autocast(device_type=xs.device.type, dtype=torch.bfloat16,
                         enabled=cfg.amp_heads and xs.device.type == "cuda"):
@@ -157,19 +145,14 @@ def _shade_points(model, cfg: RenderConfig, xs: Tensor, vs: Tensor, ns: Tensor, 
         albedo, rough, metal = model.material(xs, ns, fs)
     light_dir, intensity = light_dir.float(), intensity.float()
     albedo, rough, metal = albedo.float(), rough.float(), metal.float()
-    if cfg.metallic_scale != 1.0:  # dielectric decision (adaptivity): metallic faded towards 0
-        metal = metal * cfg.metallic_scale
-    albedo_shade, rough_shade, metal_shade = albedo, rough, metal
+    albedo_shade = albedo
     if cfg.unlit_albedo_stopgrad and unlit is not None:
         albedo_shade = torch.where(unlit[:, None], albedo.detach(), albedo)
-        if cfg.unlit_material_stopgrad:
-            rough_shade = torch.where(unlit, rough.detach(), rough)
-            metal_shade = torch.where(unlit, metal.detach(), metal)
-    if not cfg.specular:  # lobe dropped: (1 - w m) f_d(c) + w f_s, w fading to 0 (a dielectric diffuse)
-        pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal_shade[:, None],
-                                     intensity[:, None], cfg.diffuse_metal_weight, lambertian=cfg.lambertian)
+    if not shading.specular:  # lobe dropped: (1 - w m) f_d(c) + w f_s, w fading to 0 (a dielectric diffuse)
+        pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
+                                     intensity[:, None], shading.diffuse_metal_weight, lambertian=cfg.lambertian)
     else:
-        pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal_shade[:, None],
+        pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
                          intensity[:, None], lambertian=cfg.lambertian, specular=True)
     return pbr, light_dir, intensity, albedo, rough, metal
 
@@ -179,34 +162,24 @@ def _expand(t: Tensor, S: int) -> Tensor:
 
 
 def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_anneal: float = 1.0,
-                generator: torch.Generator | None = None, need_surface_extras: bool = False) -> RenderOutput:
+                generator: torch.Generator | None = None, need_surface_extras: bool = False,
+                shading: Shading | None = None) -> RenderOutput:
     """Render ``rays`` with ``model`` (a :class:`nepf_core.model.NePFModel`).
 
     Shapes: rays of length ``R``; returns :class:`RenderOutput` with ``[R, 3]`` colours.
+    ``shading``: the shading model in effect (a trained run's: ``RunState.shading()``); None:
+    ``Shading(specular=cfg.specular)``, the configured start.
     """
+    shading = shading if shading is not None else Shading(specular=cfg.specular)
     o, d = rays.origins, rays.directions
     R = o.shape[0]
     near, far, hit = near_far_from_sphere(o, d)
     sdf_only = model.sdf.sdf
-    skip = occ_len = None
-    if cfg.sampler == "occupancy" and getattr(model, "occupancy", None) is not None:
-        n_coarse = cfg.n_samples_occupied if cfg.n_samples_occupied > 0 else cfg.n_samples
-        rs = model.occupancy.sample_along_rays(o, d, near, far, n_coarse, perturb=train and cfg.perturb)
-        z, skip = rs.t_vals, float(rs.skip_fraction.mean())
-        if bool(rs.hit_any.any()):
-            occ_len = float(((1.0 - rs.skip_fraction) * (far - near))[rs.hit_any].mean())
-        max_dist = model.occupancy.cell_size  # never let a section span a skipped gap
-        z = hierarchical_z(o, d, z, sdf_only, cfg.n_importance, cfg.up_sample_steps,
-                           base_inv_s=max(64.0, float(model.deviation().detach())))
-    else:
-        z = stratified_z(near, far, cfg.n_samples, perturb=train and cfg.perturb, generator=generator)
-        z = hierarchical_z(o, d, z, sdf_only, cfg.n_importance, cfg.up_sample_steps)
-        max_dist = None
+    z = stratified_z(near, far, cfg.n_samples, perturb=train and cfg.perturb, generator=generator)
+    z = hierarchical_z(o, d, z, sdf_only, cfg.n_importance, cfg.up_sample_steps)
     S = z.shape[1]
     dists = z[:, 1:] - z[:, :-1]
     dists = torch.cat([dists, dists[:, -1:].clamp_min(1e-4)], -1)
-    if max_dist is not None:
-        dists = dists.clamp_max(max_dist)
     inv_s = model.deviation()
     hess = o.new_zeros(0)
     if cfg.alpha_mode == "sample":
@@ -241,18 +214,14 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         dirs = _expand(d, S)
         if cfg.normals == "fd":
             sdf, feat = model.sdf(pts)
-            eps = model.sdf.fd_step()
-            grad, pairs = sdf_gradient_central(sdf_only, pts, eps)
-            if train:
-                hess = hessian_diag_from_pairs(pairs, sdf, eps).abs().sum(-1)
+            grad, _ = sdf_gradient_central(sdf_only, pts, model.sdf.fd_step())
         else:
             sdf, feat, grad = sdf_gradient_autograd(model.sdf, pts, create_graph=train)
-            if train and cfg.hessian_fraction > 0:
-                q = max(1, int(pts.shape[0] * cfg.hessian_fraction))
-                sub = torch.randint(0, pts.shape[0], (q,), device=pts.device)
-                eps = model.sdf.fd_step()
-                _, pairs = sdf_gradient_central(sdf_only, pts[sub], eps)
-                hess = hessian_diag_from_pairs(pairs, sdf[sub], eps).abs().sum(-1)
+        if train and cfg.hessian_fraction > 0:  # |H f|_F on a random subset (fields/gradients.py)
+            q = max(1, int(pts.shape[0] * cfg.hessian_fraction))
+            sub = torch.randint(0, pts.shape[0], (q,), device=pts.device)
+            hess = sdf_hessian_norm(sdf_only, pts[sub], model.sdf.fd_step(),
+                                    gradient="fd" if cfg.normals == "fd" else "autograd")
         true_cos = (dirs * grad).sum(-1)
         cos = annealed_cos(true_cos, cos_anneal if train else 1.0)
         alpha = alpha_from_sdf(sdf.reshape(R, S), cos.reshape(R, S), dists, inv_s)
@@ -280,7 +249,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         rad = model.radiance(xs, vs, gs, fs)
     rad = rad.float()
     unlit_sample = rays.unlit[sel_idx // S] if (train and rays.unlit is not None) else None
-    pbr, light_dir, intensity, albedo, rough, metal = _shade_points(model, cfg, xs, vs, ns, fs, unlit_sample)
+    pbr, light_dir, intensity, albedo, rough, metal = _shade_points(model, cfg, shading, xs, vs, ns, fs, unlit_sample)
 
     P = pts.shape[0]
     rad_full = pts.new_zeros(P, 3).index_copy(0, sel_idx, rad)
@@ -309,7 +278,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         gr, _ = sdf_gradient_fd(sdf_only, xr, model.sdf.fd_step(), scheme="tetra", center="mean")
         nr = gr / gr.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         unlit_ray = rays.unlit if (train and rays.unlit is not None) else None
-        rgb_surf, ld_r, int_r, alb_r, rough_r, metal_r = _shade_points(model, cfg, xr, d, nr, fr, unlit_ray)
+        rgb_surf, ld_r, int_r, alb_r, rough_r, metal_r = _shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray)
         surf = {"x": xr, "normal": nr, "light_dir": ld_r, "intensity": int_r, "albedo": alb_r,
                 "roughness": rough_r, "metallic": metal_r}
     if train and cfg.albedo_smooth_sigma > 0:
@@ -331,5 +300,4 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     depth = (weights * mid).sum(-1)
     return RenderOutput(rgb_r=rgb_r, rgb_vol=rgb_vol, rgb_surf=rgb_surf, weight_sum=weight_sum, w_max=w_max,
                         depth=depth, eikonal=eikonal, hessian=hess, surf=surf, n_samples=int(P),
-                        n_head_evals=int(sel_idx.shape[0]), inv_s=float(inv_s.detach()), skip_fraction=skip,
-                        occupied_length=occ_len, eikonal_weight=eik_w)
+                        n_head_evals=int(sel_idx.shape[0]), inv_s=float(inv_s.detach()), eikonal_weight=eik_w)

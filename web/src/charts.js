@@ -23,6 +23,9 @@ function num(v) {
 
 /**
  * One chart: a named set of series over an x key, fed by `rows` [{x, values:{key:v}}].
+ * Its <figure id="chart-ID"> describes what is drawn: `data-points` (x values), `data-series`
+ * (series keys, comma-separated), `data-series-points` (non-empty values of each series, same
+ * order) and `data-rendered` ("true" once uPlot has drawn).
  */
 class Chart {
   constructor(container, { id, title, xLabel, yLabel, log = false, y2Label = null, emptyText }) {
@@ -39,7 +42,7 @@ class Chart {
     this.body = h('div', { class: 'chart-body' });
     this.empty = h('p', { class: 'muted small chart-empty' }, emptyText);
     this.el = h('figure', {
-      class: 'chart', id: `chart-${id}`, dataset: { chart: id, points: '0', series: '' },
+      class: 'chart', id: `chart-${id}`, dataset: { chart: id, points: '0', series: '', seriesPoints: '', rendered: 'false' },
       'aria-label': title,
     }, h('figcaption', {}, title), this.empty, this.body);
     container.append(this.el);
@@ -120,24 +123,16 @@ class Chart {
     if (!hasData) return;
     if (!this.plot || this.seriesChanged) this.build();
     else this.plot.setData(this.data());
-    this.el.dataset.points = String(this.rows.size);
-    this.el.dataset.series = this.series.map((s) => s.key).join(',');
+    const cols = this.data();
+    const d = this.el.dataset;
+    d.points = String(this.rows.size);
+    d.series = this.series.map((s) => s.key).join(',');
+    d.seriesPoints = this.series.map((s, i) => cols[i + 1].filter((v) => v !== null).length).join(',');
+    d.rendered = String(!!this.plot);
   }
 
   resize() {
     if (this.plot) this.plot.setSize({ width: this.width(), height: 220 });
-  }
-
-  /** Plain snapshot for tests: series names and point counts. */
-  snapshot() {
-    const d = this.data();
-    return {
-      id: this.id,
-      points: this.rows.size,
-      series: this.series.map((s, i) => ({ key: s.key, label: s.label, n: d[i + 1].filter((v) => v !== null).length })),
-      x: d[0],
-      rendered: !!this.plot,
-    };
   }
 
   destroy() {
@@ -145,7 +140,10 @@ class Chart {
   }
 }
 
-/** The three charts of the job page. `add(records)` feeds them; redraws are batched per frame. */
+/**
+ * The three charts of the job page. `add(records)` feeds them; redraws are batched per frame.
+ * The container's `data-records` counts the records received.
+ */
 export class JobCharts {
   constructor(container) {
     this.container = container;
@@ -168,7 +166,7 @@ export class JobCharts {
       for (const c of this.all()) c.resize();
     });
     this.ro.observe(container);
-    this.publish();
+    container.dataset.records = '0';
   }
 
   all() {
@@ -193,18 +191,9 @@ export class JobCharts {
       this.raf = requestAnimationFrame(() => {
         this.raf = null;
         for (const c of this.all()) c.flush();
-        this.publish();
+        this.container.dataset.records = String(this.records);
       });
     }
-  }
-
-  publish() {
-    window.__nepf.charts = {
-      records: this.records,
-      sync: this.sync.snapshot(),
-      error: this.error.snapshot(),
-      loss: this.loss.snapshot(),
-    };
   }
 
   destroy() {

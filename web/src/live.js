@@ -3,53 +3,44 @@ import { api } from './api.js';
 import { isFinal } from './util.js';
 
 /**
- * Normalise a job record from the API into the fields the views use. Tolerant of
- * naming differences (`id`/`job_id`, `progress` object or flat fields).
+ * The fields the views use from a job record of the API (`JobPublic`, api/schemas.py): `id`,
+ * `name`, `status`, `progress` {step, total, fraction, stage, eta_s, wall_s}, `created_at`,
+ * `config.preset`, `error`. `raw` keeps the whole record (dataset, decisions, timestamps).
  */
 export function normJob(j) {
   if (!j || typeof j !== 'object') return null;
   const p = (j.progress && typeof j.progress === 'object') ? j.progress : {};
-  const num = (...xs) => {
-    for (const x of xs) if (x !== undefined && x !== null && Number.isFinite(Number(x))) return Number(x);
-    return null;
-  };
-  let fraction = num(p.fraction, j.fraction, typeof j.progress === 'number' ? j.progress : null);
-  if (fraction === null && num(p.step, j.step) !== null && num(p.total, j.total)) {
-    fraction = num(p.step, j.step) / num(p.total, j.total);
-  }
-  const status = String(j.status || j.state || 'unknown').toLowerCase();
-  if (status === 'succeeded') fraction = 1;
+  const num = (x) => (x !== undefined && x !== null && Number.isFinite(Number(x)) ? Number(x) : null);
+  const status = String(j.status || 'unknown');
   const cfg = j.config && typeof j.config === 'object' ? j.config : {};
   return {
     raw: j,
-    id: String(j.id ?? j.job_id ?? ''),
-    name: j.name || j.dataset_name || j.filename || cfg.name || '',
+    id: String(j.id ?? ''),
+    name: j.name || '',
     status,
-    fraction,
-    stage: p.stage ?? j.stage ?? null,
-    eta_s: num(p.eta_s, j.eta_s),
-    step: num(p.step, j.step),
-    total: num(p.total, j.total),
-    wall_s: num(p.wall_s, j.wall_s),
-    created: j.created_at ?? j.created ?? j.submitted_at ?? null,
-    preset: cfg.preset ?? j.preset ?? null,
-    error: j.error ?? j.error_message ?? j.message ?? null,
+    fraction: status === 'succeeded' ? 1 : num(p.fraction),
+    stage: p.stage ?? null,
+    eta_s: num(p.eta_s),
+    step: num(p.step),
+    total: num(p.total),
+    wall_s: num(p.wall_s),
+    created: j.created_at ?? null,
+    preset: cfg.preset ?? null,
+    error: j.error ?? null,
   };
 }
 
-/** Merge a progress / status event into a normalised job (returns a new object). */
+/**
+ * Merge the SSE `progress` event ({status, progress, error, decisions, cancel_requested}) into
+ * a normalised job (returns a new object).
+ */
 export function applyEvent(job, data) {
   if (!data || typeof data !== 'object') return job;
   const raw = { ...(job?.raw || {}) };
-  if (data.job && typeof data.job === 'object') Object.assign(raw, data.job);
-  for (const k of ['status', 'state', 'error', 'error_message', 'cancel_requested', 'decisions', 'stage', 'eta_s', 'fraction', 'step', 'total', 'wall_s']) {
+  for (const k of ['status', 'error', 'cancel_requested', 'decisions']) {
     if (data[k] !== undefined) raw[k] = data[k];
   }
   if (data.progress && typeof data.progress === 'object') raw.progress = { ...(raw.progress || {}), ...data.progress };
-  else if ('fraction' in data || 'eta_s' in data || 'stage' in data) {
-    raw.progress = { ...(raw.progress || {}) };
-    for (const k of ['fraction', 'eta_s', 'stage', 'step', 'total', 'wall_s']) if (data[k] !== undefined) raw.progress[k] = data[k];
-  }
   return normJob(raw);
 }
 
@@ -61,8 +52,9 @@ export function isMetricRecord(d) {
 }
 
 /**
- * Follow one job. Calls `onJob(job)` on status/progress changes and `onMetrics(records)`
- * with new metric records (each record once, in order).
+ * Follow one job. Calls `onJob(job)` on status/progress changes, `onMetrics(records)`
+ * with new metric records (each record once, in order) and `onMode(mode)` when the way it
+ * follows changes ('connecting' | 'sse' | 'polling' | 'stopped').
  *
  * Protocol (api/routes/jobs.py): GET the job, then open the SSE stream
  * `/jobs/{id}/events?ticket=..&since=N` (ticket from POST /events/ticket). Events:
@@ -70,9 +62,9 @@ export function isMetricRecord(d) {
  * cancel_requested, decisions}) and `end` ({status}). A dropped stream is reopened with a
  * fresh ticket from the last cursor; if the stream cannot be opened (proxy without SSE,
  * ticket refused), it polls `GET /jobs/{id}` and `/metrics?since=` every `pollMs`.
- * Returns `stop()`; `stop.state.mode` is 'sse' | 'polling' | 'stopped'.
+ * Returns `stop()`; `stop.state.mode` is the current mode.
  */
-export function followJob(id, { onJob, onMetrics, pollMs = 2000, metrics = true } = {}) {
+export function followJob(id, { onJob, onMetrics, onMode, pollMs = 2000, metrics = true } = {}) {
   let stopped = false;
   let es = null;
   let timer = null;
@@ -81,6 +73,11 @@ export function followJob(id, { onJob, onMetrics, pollMs = 2000, metrics = true 
   let mode = 'connecting';
   let sseFailures = 0;
   const state = { get mode() { return mode; }, get since() { return since; } };
+  const setMode = (m) => {
+    if (m === mode) return;
+    mode = m;
+    onMode?.(m);
+  };
 
   const emitJob = (j) => {
     if (!j || stopped) return;
@@ -120,7 +117,7 @@ export function followJob(id, { onJob, onMetrics, pollMs = 2000, metrics = true 
 
   function startPolling() {
     if (stopped || mode === 'polling') return;
-    mode = 'polling';
+    setMode('polling');
     const tick = async () => {
       if (stopped) return;
       await Promise.all([pollJob(), pollMetrics()]);
@@ -136,7 +133,7 @@ export function followJob(id, { onJob, onMetrics, pollMs = 2000, metrics = true 
 
   function stopAll() {
     stopped = true;
-    mode = 'stopped';
+    setMode('stopped');
     if (es) es.close();
     es = null;
     clearTimeout(timer);
@@ -156,7 +153,7 @@ export function followJob(id, { onJob, onMetrics, pollMs = 2000, metrics = true 
     if (stopped || es || mode === 'polling') return; // stopped, already open, or gave up on SSE
     const src = new EventSource(url);
     es = src;
-    mode = 'sse';
+    setMode('sse');
     // events of a source that is no longer the current one (closed, replaced) are dropped
     const current = () => {
       if (src === es && !stopped) return true;

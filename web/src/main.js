@@ -1,4 +1,4 @@
-// Entry point: login-URL handling, hash router, and the test/debug hook `window.__nepf`.
+// Entry point: login-URL handling and the hash router.
 import './style.css';
 import 'uplot/dist/uPlot.min.css';
 import { getToken, setToken } from './api.js';
@@ -7,10 +7,6 @@ import { renderLogin } from './views/login.js';
 import { renderJobs } from './views/jobs.js';
 import { renderUpload } from './views/upload.js';
 import { renderJob } from './views/job.js';
-
-// Introspection for tests and debugging: views register their live state here
-// (chart data, viewer state). Read-only by convention.
-window.__nepf = window.__nepf || { charts: {}, viewer: null, jobs: [], version: 1 };
 
 /**
  * The login URL printed by `nepf serve` carries the token in the fragment

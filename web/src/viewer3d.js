@@ -746,7 +746,7 @@ export class AssetViewer {
     this.canvas.addEventListener('pointercancel', end);
   }
 
-  /** Screen position (CSS px, relative to the canvas) of the light gizmo: used by tests. */
+  /** Screen position (CSS px, relative to the canvas) of the light gizmo. */
   gizmoScreenPosition() {
     const p = this.gizmo.position.clone().project(this.camera);
     const r = this.canvas.getBoundingClientRect();
@@ -776,24 +776,28 @@ export class AssetViewer {
     if (this.disposed) return;
     this.renderer.render(this.scene, this.camera);
     this.frame++;
-    this.canvas.dataset.frame = String(this.frame);
+    this.describeFrame();
   }
 
-  snapshot() {
+  /**
+   * What the frame just drawn shows, as data-* attributes of the canvas (read by the browser
+   * tests and by anyone inspecting the page): `data-state` (loading | loaded), `data-frame`
+   * (frames drawn so far), `data-channel`, `data-wireframe`, `data-glyphs` (light-field arrows
+   * drawn), `data-light-position` ("x y z", world), `data-gizmo-x` / `data-gizmo-y` (the light
+   * gizmo's position in CSS px from the canvas's top-left corner).
+   */
+  describeFrame() {
+    const d = this.canvas.dataset;
     const p = this.light.position;
-    return {
-      loaded: this.loaded,
-      frame: this.frame,
-      channel: this.state.channel,
-      wireframe: this.state.wireframe,
-      env: this.state.env,
-      light: { position: [p.x, p.y, p.z], intensity: this.light.intensity, az: this.state.lightAz, el: this.state.lightEl },
-      glyphs: this.glyphCount(),
-      lightFieldPoints: this.lf ? this.lf.positions.length : 0,
-      radius: this.radius,
-      center: this.center.toArray(),
-      meshes: this.meshes.length,
-    };
+    const g = this.gizmoScreenPosition();
+    d.state = this.loaded ? 'loaded' : 'loading';
+    d.frame = String(this.frame);
+    d.channel = this.state.channel;
+    d.wireframe = String(this.state.wireframe);
+    d.glyphs = String(this.glyphCount());
+    d.lightPosition = [p.x, p.y, p.z].join(' ');
+    d.gizmoX = g.x.toFixed(1);
+    d.gizmoY = g.y.toFixed(1);
   }
 
   dispose() {

@@ -106,17 +106,16 @@ export function renderJob(root, id) {
       h('h2', { id: 'downloads-title' }, 'Downloads'),
       downloads)));
 
+  const page = root.querySelector('.job-page'); // data-status, data-live
   const charts = new JobCharts(chartsHost);
 
   // ---------------------------------------------------------------- header updates
   function renderHeader() {
     if (!job) return;
-    const trail = window.__nepf.statusTrail;
-    if (trail[trail.length - 1] !== job.status) trail.push(job.status);
     title.textContent = job.name ? `${job.name}` : `Job ${job.id}`;
     clear(statusSlot).append(h('div', { class: 'row' }, statusBadge(job.status),
       job.preset ? h('span', { class: 'chip' }, job.preset) : null), progressBar(job));
-    root.querySelector('.job-page').dataset.status = job.status;
+    page.dataset.status = job.status;
     const raw = job.raw || {};
     const metaItems = [['Created', fmtTime(job.created)]];
     if (raw.started_at) metaItems.push(['Started', fmtTime(raw.started_at)]);
@@ -218,7 +217,6 @@ export function renderJob(root, id) {
           lightFieldReady(0);
         });
       } else lightFieldReady(0);
-      publish();
     } catch (e) {
       console.warn('asset load failed', e);
       viewerMsg.textContent = `Could not display the asset: ${e.message}`;
@@ -307,17 +305,11 @@ export function renderJob(root, id) {
       h('div', { class: 'seg' }, CHANNELS.map((c) => h('label', { class: 'seg-item' },
         h('input', {
           type: 'radio', name: 'channel', value: c.value, id: `channel-${c.value}`, checked: st.channel === c.value,
-          onchange: () => {
-            viewer.set({ channel: c.value });
-            publish();
-          },
+          onchange: () => viewer.set({ channel: c.value }),
         }), h('span', {}, c.label)))));
     const wire = h('label', { class: 'check' }, h('input', {
       type: 'checkbox', id: 'wireframe', checked: st.wireframe,
-      onchange: (e) => {
-        viewer.set({ wireframe: e.target.checked });
-        publish();
-      },
+      onchange: (e) => viewer.set({ wireframe: e.target.checked }),
     }), ' Wireframe');
     const upSel = h('div', { class: 'field' }, h('label', { for: 'up-axis' }, 'Up axis'),
       h('select', {
@@ -335,16 +327,12 @@ export function renderJob(root, id) {
       onchange: (e) => {
         viewer.set({ lightField: e.target.checked });
         lfLegend.hidden = !e.target.checked;
-        publish();
       },
     });
     lfSlider = slider({
       id: 'lightfield-density', label: 'Glyph density', min: 0.02, max: 1, step: 0.02, value: st.density,
       format: (v) => `${Math.round(v * 100)}%`,
-      onInput: (v) => {
-        viewer.set({ density: v });
-        publish();
-      },
+      onInput: (v) => viewer.set({ density: v }),
     });
     lfSlider.input.disabled = true;
     lfLegend = h('div', { class: 'legend', id: 'lightfield-legend', hidden: true });
@@ -357,17 +345,11 @@ export function renderJob(root, id) {
     // relighting
     const mk = (key, label, min, max, step, fmt) => (ctl[key] = slider({
       id: `light-${key}`, label, min, max, step, value: st[key], format: fmt,
-      onInput: (v) => {
-        viewer.set({ [key]: v });
-        publish();
-      },
+      onInput: (v) => viewer.set({ [key]: v }),
     }));
     const env = h('select', {
       id: 'env-preset',
-      onchange: (e) => {
-        viewer.set({ env: e.target.value });
-        publish();
-      },
+      onchange: (e) => viewer.set({ env: e.target.value }),
     }, ENVIRONMENTS.map((o) => h('option', { value: o.value, selected: o.value === st.env }, o.label)));
     const lightSet = h('fieldset', { id: 'light-group' },
       h('legend', {}, 'Relighting'),
@@ -391,20 +373,17 @@ export function renderJob(root, id) {
     // material editing
     const tint = h('input', {
       type: 'color', id: 'albedo-tint', value: st.tint,
-      oninput: (e) => {
-        viewer.set({ tint: e.target.value });
-        publish();
-      },
+      oninput: (e) => viewer.set({ tint: e.target.value }),
     });
     const matSet = h('fieldset', { id: 'material-group' },
       h('legend', {}, 'Material editing'),
       (ctl.roughnessScale = slider({
         id: 'roughness-scale', label: 'Roughness scale', min: 0, max: 2, step: 0.05, value: st.roughnessScale,
-        format: (v) => `${Number(v).toFixed(2)}×`, onInput: (v) => { viewer.set({ roughnessScale: v }); publish(); },
+        format: (v) => `${Number(v).toFixed(2)}×`, onInput: (v) => viewer.set({ roughnessScale: v }),
       })).wrap,
       (ctl.metallicScale = slider({
         id: 'metallic-scale', label: 'Metallic scale', min: 0, max: 2, step: 0.05, value: st.metallicScale,
-        format: (v) => `${Number(v).toFixed(2)}×`, onInput: (v) => { viewer.set({ metallicScale: v }); publish(); },
+        format: (v) => `${Number(v).toFixed(2)}×`, onInput: (v) => viewer.set({ metallicScale: v }),
       })).wrap,
       h('div', { class: 'field' }, h('label', { for: 'albedo-tint' }, 'Albedo tint'), tint),
       h('button', {
@@ -437,24 +416,20 @@ export function renderJob(root, id) {
     } else {
       status.textContent = 'No light field in the results.';
     }
-    publish();
   }
 
   function syncControls() {
     if (!viewer) return;
     for (const [k, c] of Object.entries(ctl)) c.set(viewer.state[k]);
-    publish();
   }
-
-  function publish() {
-    if (viewer) window.__nepf.viewer = viewer.snapshot();
-  }
-  window.__nepf.viewer = null;
-  window.__nepf.viewerApi = () => viewer;
-  window.__nepf.statusTrail = []; // the statuses this page showed, in order
 
   // ---------------------------------------------------------------- live
+  // the page's data-live says how it follows the job: connecting | sse | polling | stopped
+  page.dataset.live = 'connecting';
   const stop = followJob(id, {
+    onMode: (mode) => {
+      page.dataset.live = mode;
+    },
     onJob: (j) => {
       if (stopped) return;
       job = { ...(job || {}), ...Object.fromEntries(Object.entries(j).filter(([, v]) => v !== null && v !== undefined)) };
@@ -468,17 +443,10 @@ export function renderJob(root, id) {
     },
   });
 
-  window.__nepf.liveMode = () => stop.state.mode; // 'sse' | 'polling' | 'stopped'
-
-  // publish viewer frames for tests (render count changes after each redraw)
-  const pubTimer = setInterval(publish, 250);
-
   return () => {
     stopped = true;
     stop();
-    clearInterval(pubTimer);
     charts.destroy();
     viewer?.dispose();
-    window.__nepf.viewer = null;
   };
 }

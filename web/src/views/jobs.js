@@ -156,7 +156,6 @@ export function renderJobs(root) {
       entry.stop();
       entry.stop = null;
     }
-    window.__nepf.jobs = [...rows.values()].map((r) => ({ id: r.job.id, status: r.job.status, fraction: r.job.fraction, stage: r.job.stage }));
   }
 
   function pickLive(j) {
@@ -170,7 +169,7 @@ export function renderJobs(root) {
     try {
       const res = await api.listJobs();
       if (stopped) return; // the view was left while the request was in flight
-      const list = (Array.isArray(res) ? res : (res?.jobs || res?.items || [])).map(normJob).filter(Boolean);
+      const list = (res?.items || []).map(normJob).filter(Boolean);
       errEl.hidden = true;
       const seen = new Set();
       list.sort((a, b) => String(b.created || '').localeCompare(String(a.created || '')));

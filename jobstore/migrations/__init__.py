@@ -1,0 +1,1 @@
+"""Alembic environment and revision scripts of the job store (run through ``jobstore.migrate``)."""

@@ -1,0 +1,158 @@
+"""Adaptivity: leaving out what a scene does not need, every decision recorded.
+
+:class:`Adaptivity` runs the rules of :mod:`nepf_core.train.rules` (each reads the frozen
+:class:`~nepf_core.train.rules.config.RuleConfig` and returns decisions) and applies their
+decisions to the :class:`~nepf_core.train.run_state.RunState`, the only place where the
+switches in effect live. It also keeps the statistics that go to ``metrics.jsonl`` and
+``report.json``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from nepf_core.train.decisions import Decision, DecisionLog
+from nepf_core.train.rules.config import RuleConfig
+from nepf_core.train.rules.empty_rays import EmptyRayRule
+from nepf_core.train.rules.hessian import HessianRule
+from nepf_core.train.rules.masks import decide_masks
+from nepf_core.train.rules.occupancy import carve_visual_hull, empty_space_decision, refresh_occupancy
+from nepf_core.train.rules.plateau import PlateauRule
+from nepf_core.train.rules.specular import SpecularRule
+from nepf_core.train.run_state import RunState
+
+
+class Adaptivity:
+    """The rules of one run, the decisions they took, and the run state they act on."""
+
+    def __init__(self, rc: RuleConfig, run_state: RunState) -> None:
+        self.rc = rc
+        self.run_state = run_state
+        self.log = DecisionLog()
+        self.specular = SpecularRule(rc)
+        self.hessian = HessianRule(rc)
+        self.plateau = PlateauRule(rc)
+        self.empty_rays = EmptyRayRule(rc)
+        self.occupied_fraction: float | None = None
+        self.cams: torch.Tensor | None = None
+
+    @property
+    def decisions(self) -> list[dict]:
+        return self.log.records
+
+    @property
+    def stop_requested(self) -> bool:
+        return self.plateau.stop_requested
+
+    def record(self, decision: Decision | None) -> None:
+        """Log ``decision`` and apply it to the run state."""
+        if decision is None:
+            return
+        self.log.add(decision)
+        rs = self.run_state
+        if decision.name == "specular_lobe":
+            rs.specular = bool(decision.value)
+            if not rs.specular:
+                rs.diffuse_metal_weight = 1.0   # the same image at the drop, then the fade
+            self.plateau.restart()              # the shading model changed
+        elif decision.name == "hessian_loss":
+            rs.w_hessian = self.rc.w_hessian if decision.value else 0.0
+
+    # -- before training --
+    def before_training(self, scene) -> None:
+        """Decisions from the data: mask loss, background model, what the occupancy grid is for."""
+        c2w = getattr(scene, "c2w", None)
+        self.cams = None if c2w is None else torch.as_tensor(np.asarray(c2w)[:, :3, 3], dtype=torch.float32)
+        use, background, decisions = decide_masks(scene.has_masks, self.rc.w_mask)
+        self.run_state.use_mask_loss, self.run_state.background = use, background
+        for d in decisions:
+            self.record(d)
+        self.record(empty_space_decision(self.rc))
+        if not self.rc.enabled:
+            self.record(Decision("adaptive", False, "adaptivity disabled: every term stays on"))
+
+    def start_occupancy(self, model, scene) -> None:
+        self.record(carve_visual_hull(model, scene, self.rc))
+
+    # -- during training --
+    def refresh_occupancy(self, model, step: int) -> None:
+        self.occupied_fraction = refresh_occupancy(model, step)
+
+    def thin_empty_rays(self, model, rays, step: int, generator: torch.Generator | None = None):
+        kept, decision = self.empty_rays.thin(model, rays, step, generator, first=not self.log.has("empty_rays"))
+        self.record(decision)
+        return kept
+
+    def wants_evidence(self, step: int) -> bool:
+        """Whether step ``step`` is a specular check (render the surface extras for it)."""
+        return self.specular.wants_evidence(step)
+
+    def observe(self, step: int, model, out, rays) -> None:
+        """A check's evidence on the lobe (call before :meth:`after_step`)."""
+        self.specular.observe(step, model, out, rays, self.cams, self.run_state.specular)
+
+    def after_step(self, step: int, out, losses: dict) -> None:
+        """The per-step rules, in order: eikonal EMA, the lobe's fade, Hessian, lobe decision."""
+        eik = float(losses["loss_eik"].detach()) if "loss_eik" in losses else 0.0
+        self.hessian.observe(eik)
+        if not self.rc.enabled:
+            return
+        rs = self.run_state
+        w = self.specular.fade_weight(step, rs.specular, rs.diffuse_metal_weight)
+        if w is not None:
+            rs.diffuse_metal_weight = w
+            if w <= 0.0:
+                self.plateau.restart()   # the fade is over: the model from here on is the one to judge
+        self.record(self.hessian.decide(step, rs.w_hessian))
+        for d in self.specular.decide(step, out, rs.specular):
+            self.record(d)
+
+    def on_test_eval(self, step: int, rec: dict, progress: float | None = None) -> None:
+        self.record(self.plateau.on_test_eval(step, rec, progress))
+
+    def lr_factor(self, wall: float, f_now: float) -> float:
+        return self.plateau.lr_factor(wall, f_now)
+
+    def step_stats(self) -> dict:
+        """Statistics for the step's ``metrics.jsonl`` record."""
+        s = self.specular.step_stats(self.run_state.specular)
+        if self.occupied_fraction is not None:
+            s["occupied_fraction"] = self.occupied_fraction
+        if self.empty_rays.last is not None:
+            s["rays_left_out"] = self.empty_rays.last
+        return s
+
+    # -- checkpoint and report --
+    def state(self) -> dict:
+        return {"decisions": self.log.records, "specular_rule": self.specular.state(),
+                "hessian_rule": self.hessian.state(), "plateau_rule": self.plateau.state(),
+                "empty_rays_rule": self.empty_rays.state()}
+
+    def load_state(self, s: dict) -> None:
+        if not s:
+            return
+        self.log = DecisionLog(s.get("decisions", []))
+        self.specular.load_state(s.get("specular_rule", {}))
+        self.hessian.load_state(s.get("hessian_rule", {}))
+        self.plateau.load_state(s.get("plateau_rule", {}))
+        self.empty_rays.load_state(s.get("empty_rays_rule", {}))
+
+    def report(self, *, step: int, status: str, nonfinite: int) -> dict:
+        """``report.json``: status, decisions, the final switches and the run state, empty-space
+        statistics."""
+        rs = self.run_state
+        if self.rc.enabled and rs.specular and self.specular.stats and not self.log.has("specular_lobe"):
+            self.log.add(self.specular.kept_report(step))   # a record only: nothing changes
+        rep = {"status": status, "step": step, "nonfinite_steps": nonfinite, "decisions": self.log.records,
+               "final_switches": {"specular": rs.specular, "mask_loss": rs.use_mask_loss,
+                                  "background": rs.background, "w_hessian": rs.w_hessian},
+               "run_state": rs.to_dict()}
+        if self.occupied_fraction is not None:
+            rep["occupied_fraction"] = self.occupied_fraction
+        left_out = self.empty_rays.mean_left_out()
+        if left_out is not None:
+            rep["rays_left_out_fraction"] = left_out
+            rep["rays_left_out_note"] = ("mean over training steps of the share of drawn rays left out of the batch "
+                                         "because they meet no occupied cell (a random miss_keep share of those stays)")
+        return rep

@@ -1,0 +1,317 @@
+"""``fit()``: the single-stage NePF training loop.
+
+Per step: set the schedule (learning rate, NeuS cosine annealing, coarse-to-fine grid levels,
+occupancy refresh) -> draw rays (rays that meet no occupied cell mostly left out) -> render
+(L_r, L_vol, L_surf from one set of samples) -> losses -> Adam step (skipped and counted when
+the loss or gradient is non-finite) -> adaptivity rules -> records. Around it: sync-PSNR on
+training views, held-out evaluation on a wall-clock schedule, checkpoints, a time budget and a
+cooperative stop. Hooks (:class:`nepf_core.train.hooks.TrainHooks`) observe the steps,
+evaluations and checkpoints.
+
+Optimiser: Adam, ``betas = (0.9, 0.99)``, ``eps = 1e-15``, fused where available, two parameter
+groups (grid tables at ``train.lr_grid``, the rest at ``train.lr``);
+:func:`nepf_core.train.setup.make_optimizer` says why.
+
+``wall_s`` in every record counts training time only (:mod:`nepf_core.train.clock`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from contextlib import nullcontext
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from nepf_core.callbacks import FitCallbacks
+from nepf_core.checkpoint import load_checkpoint, prune_checkpoints, save_checkpoint
+from nepf_core.config import NePFConfig
+from nepf_core.data.scene import Scene
+from nepf_core.losses import compute_losses
+from nepf_core.model import NePFModel
+from nepf_core.rays import PixelSampler
+from nepf_core.render.renderer import render_rays
+from nepf_core.train.adaptivity import Adaptivity
+from nepf_core.train.clock import TrainClock
+from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
+from nepf_core.train.hooks import TrainHooks
+from nepf_core.train.metrics_log import MetricsLog, plot_error_vs_time, write_json_atomic
+from nepf_core.train.result import FitError, FitResult
+from nepf_core.train.rules.config import RuleConfig
+from nepf_core.train.run_state import RunState
+from nepf_core.train.schedule import coarse_to_fine, cos_anneal_ratio, progress_fraction, scheduled_lr_factor
+from nepf_core.train.setup import init_radiance_to_data, make_optimizer, resolve_device, unlit_pixels
+from nepf_core.weight_average import ParamEMA
+
+
+def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbacks: FitCallbacks | None = None,
+        resume: bool = False, time_budget_s: float | None = None, targets: EvalTargets | None = None,
+        iters_fixed: bool = True, log=None, hooks: Sequence[TrainHooks] = (), rules: dict | None = None) -> FitResult:
+    """Train NePF on ``scene`` and write ``run_dir`` (see docs/ARCHITECTURE.md "Run folder").
+
+    Args:
+        scene: training views (normalised frame).
+        cfg: a preset from :mod:`nepf_core.config`, possibly edited; never written to.
+        device: ``auto | cpu | cuda``.
+        resume: continue from ``run_dir/checkpoints/latest.pt`` (exact: same losses as an
+            uninterrupted run on the same device).
+        time_budget_s: stop after this many seconds of training wall time.
+        targets: held-out views / GT mesh / GT albedo for error-against-time records.
+        iters_fixed: the user fixed the iteration count (disables plateau early stop).
+        hooks: observers of steps, evaluations and checkpoints.
+        rules: overrides of the adaptivity constants (:class:`~nepf_core.train.rules.config.RuleConfig`
+            field names; tests and probes).
+    Returns:
+        :class:`FitResult` (status ``succeeded``, ``cancelled`` or ``stopped_early``).
+    """
+    run = TrainingRun(scene, run_dir, cfg, device=device, callbacks=callbacks, resume=resume,
+                      time_budget_s=time_budget_s, targets=targets, iters_fixed=iters_fixed, log=log,
+                      hooks=hooks, rules=rules)
+    return run.train()
+
+
+class TrainingRun:
+    """One run's model, optimiser, run state, clock and counters; hooks receive it."""
+
+    def __init__(self, scene: Scene, run_dir, cfg: NePFConfig, *, device: str, callbacks: FitCallbacks | None,
+                 resume: bool, time_budget_s: float | None, targets: EvalTargets | None, iters_fixed: bool,
+                 log, hooks: Sequence[TrainHooks], rules: dict | None) -> None:
+        self.scene, self.cfg, self.targets = scene, cfg, targets
+        self.callbacks = callbacks or FitCallbacks()
+        self.hooks = list(hooks)
+        self.say = log or (lambda *a: None)
+        self.time_budget_s = time_budget_s
+        self.dir = Path(run_dir)
+        (self.dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+        self.device = dev = resolve_device(device)
+        tc = cfg.train
+        torch.manual_seed(tc.seed)
+        np.random.seed(tc.seed)
+
+        self.run_state = RunState.from_config(cfg)
+        self.adapt = Adaptivity(RuleConfig.from_config(cfg, iters_fixed=iters_fixed, **(rules or {})), self.run_state)
+        self.adapt.before_training(scene)
+        (self.dir / "config.json").write_text(cfg.to_json())   # what the user asked for, never updated
+
+        self.model = NePFModel(self.run_state.model_config(cfg.model)).to(dev)
+        init_radiance_to_data(self.model, scene)
+        self.optimizer = make_optimizer(self.model, tc.lr, tc.lr_grid)
+        self.gen = torch.Generator().manual_seed(tc.seed)
+        self.ema = ParamEMA(self.model, tc.ema_decay) if tc.ema_decay != 0 else None   # a negative one: ParamEMA says so
+        self.sampler = PixelSampler(scene, dev)
+        self.unlit_thr, decision = unlit_pixels(scene, cfg.render)
+        self.adapt.record(decision)
+        if self.model.occupancy is not None:
+            self.adapt.start_occupancy(self.model, scene)
+        # the render settings in effect (bf16 heads only on CUDA); evaluations use the same
+        self.run_cfg = dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, amp_heads=bool(tc.amp and dev.type == "cuda")))
+
+        self.step, self.nonfinite, wall_before = 0, 0, 0.0
+        self.latest = self.dir / "checkpoints" / "latest.pt"
+        if resume and self.latest.exists():
+            wall_before = self._restore()
+        elif not resume:
+            (self.dir / "metrics.jsonl").unlink(missing_ok=True)
+        self.mlog = MetricsLog(self.dir / "metrics.jsonl", self.callbacks)
+        self.total = tc.iters
+        self.sync_views = list(np.linspace(0, scene.n_views - 1, min(tc.sync_views, scene.n_views)).round().astype(int))
+        self.clock = TrainClock(wall_before)
+        self.last_eval_wall = wall_before
+        self.last_test: dict = {}
+        self.anneal = 1.0
+        self._shading_seen = (self.run_state.specular, self.run_state.diffuse_metal_weight)
+
+    def _restore(self) -> float:
+        st = load_checkpoint(self.latest, model=self.model, optimizer=self.optimizer, generator=self.gen,
+                             map_location=self.device)
+        extra = st["extra"]
+        self.step, self.nonfinite = int(st["step"]), int(extra.get("nonfinite", 0))
+        self.adapt.load_state(extra.get("adaptivity", {}))
+        restored = RunState.from_checkpoint(extra, self.cfg)
+        for k, v in restored.to_dict().items():   # in place: the rules act on this object
+            setattr(self.run_state, k, v)
+        if self.ema is not None and "ema" in extra:
+            self.ema.load_state_dict(extra["ema"])
+        self.say(f"resumed from step {self.step}")
+        return float(st["wall_s"])
+
+    # -- clocks --
+    def progress(self) -> float:
+        return progress_fraction(self.step, self.total, self.clock.wall(), self.time_budget_s)
+
+    def emit_progress(self, stage: str) -> None:
+        w = self.clock.wall()
+        frac = self.progress()
+        eta = (w / frac - w) if frac > 1e-6 else None
+        info = {"step": self.step, "total": self.total, "fraction": frac, "stage": stage,
+                "eta_s": None if eta is None else round(eta, 1), "wall_s": round(w, 3)}
+        self.callbacks.progress(info)
+        if self.step % 10 == 0 or stage != "training":
+            write_json_atomic(self.dir / "progress.json", info)
+
+    # -- the loop --
+    def train(self) -> FitResult:
+        status = "succeeded"
+        self.model.train()
+        self.emit_progress("training")
+        self._t_log, self._n_rays, self._n_samples = time.perf_counter(), 0, 0
+        try:
+            while self.step < self.total:
+                if self.callbacks.stop_requested():
+                    status = "cancelled"
+                    break
+                if self.time_budget_s is not None and self.clock.wall() >= self.time_budget_s:
+                    break
+                if not self._set_schedule():   # plateau: at once, or at the end of its cool-down
+                    status = "stopped_early"
+                    break
+                for h in self.hooks:
+                    h.before_step(self, self.step)
+                rays, out, losses = self._train_step()
+                self._after_step(rays, out, losses)
+            self.checkpoint()
+            self.evaluate(final=True)
+        except FitError as e:
+            self.adapt.log.record("failed", True, str(e), self.step)
+            self._write_report("failed")
+            raise
+        finally:
+            self.mlog.close()
+        report = self._write_report(status)
+        self.emit_progress("finished" if status == "succeeded" else status)
+        plot_error_vs_time(self.dir)
+        return FitResult(status=status, step=self.step, total=self.total, wall_s=self.clock.wall(),
+                         run_dir=str(self.dir), nonfinite_steps=self.nonfinite, last_test=self.last_test, report=report)
+
+    def _set_schedule(self) -> bool:
+        """Learning rate, annealing, grid levels, occupancy refresh for the next step; False when
+        the plateau rule asks to stop."""
+        tc, p = self.cfg.train, self.progress()
+        f = scheduled_lr_factor(self.step, p, self.total, tc, budgeted=bool(self.time_budget_s))
+        f = self.adapt.lr_factor(self.clock.wall(), f)
+        if self.adapt.stop_requested:
+            return False
+        for group in self.optimizer.param_groups:
+            group["lr"] = group["base_lr"] * f
+        self.anneal = cos_anneal_ratio(p, self.total, tc.anneal_end)
+        if hasattr(self.model.sdf, "set_progress"):
+            self.model.sdf.set_progress(coarse_to_fine(p, tc.coarse_to_fine_frac))
+        if self.model.occupancy is not None and self.step % tc.occupancy_every == 0:
+            self.adapt.refresh_occupancy(self.model, self.step)
+        return True
+
+    def _train_step(self):
+        """Draw, render, take the losses and the optimiser step; returns ``(rays, out, losses)``."""
+        tc, rs, model = self.cfg.train, self.run_state, self.model
+        rays = self.sampler.sample(tc.batch_rays, generator=self.gen)
+        if self.unlit_thr is not None:
+            rays.unlit = rays.rgb.amax(-1) < self.unlit_thr
+        rays = self.adapt.thin_empty_rays(model, rays, self.step, generator=self.gen)
+        self._evidence = self.adapt.wants_evidence(self.step)
+        out = render_rays(model, rays, self.run_cfg.render, train=True, cos_anneal=self.anneal, generator=self.gen,
+                          need_surface_extras=self._evidence, shading=rs.shading())
+        losses = compute_losses(out, rays, rs.loss_config(self.cfg.loss), use_mask=rs.use_mask_loss,
+                                specular=rs.specular)
+        loss = losses["loss"]
+        self.optimizer.zero_grad(set_to_none=True)
+        ok = bool(torch.isfinite(loss))
+        if ok:
+            loss.backward()
+            gn = torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip if tc.grad_clip > 0 else float("inf"))
+            ok = bool(torch.isfinite(gn))
+        if ok:
+            self.optimizer.step()
+            if self.ema is not None:
+                self.ema.update(model)
+        else:
+            self.nonfinite += 1
+            self.optimizer.zero_grad(set_to_none=True)
+            if self.nonfinite > tc.max_nonfinite_steps:
+                raise FitError(f"training diverged: {self.nonfinite} steps had a non-finite loss or gradient "
+                               f"(limit {tc.max_nonfinite_steps}); last at step {self.step}")
+        self.step += 1
+        return rays, out, losses
+
+    def _after_step(self, rays, out, losses) -> None:
+        """Adaptivity, the weight average's restart, records, sync/held-out evaluations, checkpoints."""
+        tc, step = self.cfg.train, self.step
+        self._n_rays += len(rays)
+        self._n_samples += out.n_samples
+        if self._evidence:
+            self.adapt.observe(step, self.model, out, rays)
+        self.adapt.after_step(step, out, losses)
+        shading = (self.run_state.specular, self.run_state.diffuse_metal_weight)
+        if self.ema is not None and shading != self._shading_seen:
+            self.ema.reset(self.model)   # weights averaged across a change of the shading model do not fit it
+        self._shading_seen = shading
+        for h in self.hooks:
+            h.after_step(self, step, out, losses)
+        if step % tc.log_every == 0 or step == self.total:
+            self._log_train(rays, out, losses)
+        if tc.sync_every > 0 and step % tc.sync_every == 0:
+            with self.clock.paused():
+                s = sync_psnr(self.model, self.sampler, self.run_cfg, self.sync_views, tc.sync_rays, tc.seed + 1,
+                              shading=self.run_state.shading())
+                s.update({"kind": "sync", "step": step, "wall_s": round(self.clock.wall(), 3)})
+            self.mlog.write(s)
+        if tc.eval_every_s > 0 and self.clock.wall() - self.last_eval_wall >= tc.eval_every_s:
+            self.evaluate(final=False)
+        if step % tc.checkpoint_every == 0:
+            self.checkpoint()
+        self.emit_progress("training")
+
+    def _log_train(self, rays, out, losses) -> None:
+        dt = max(time.perf_counter() - self._t_log, 1e-9)
+        rec = {"step": self.step, "wall_s": round(self.clock.wall(), 3), "kind": "train"}
+        rec.update({k: float(v.detach()) for k, v in losses.items()})
+        rec.update({"inv_s": out.inv_s, "lr": self.optimizer.param_groups[0]["lr"], "batch_rays": len(rays),
+                    "rays_per_s": self._n_rays / dt, "samples_per_s": self._n_samples / dt,
+                    "head_evals": out.n_head_evals, "nonfinite_steps": self.nonfinite,
+                    "specular_on": bool(self.run_state.specular)})
+        rec.update(self.adapt.step_stats())
+        self.mlog.write(rec)
+        self._t_log, self._n_rays, self._n_samples = time.perf_counter(), 0, 0
+
+    # -- evaluation, checkpoints, report --
+    def evaluate(self, final: bool) -> None:
+        """Held-out metrics (with the weight average applied), one ``kind == "test"`` record."""
+        if self.targets is None or self.targets.test_scene is None:
+            return
+        with self.clock.paused():
+            w_train = self.clock.wall()   # training time at the start of this evaluation
+            self.emit_progress("evaluating")
+            with self.ema.applied(self.model) if self.ema is not None else nullcontext():
+                rec = evaluate_test(self.model, self.run_cfg, self.targets, self.device, self.scene.world_from_norm,
+                                    self.cfg.train.eval_stride, with_chamfer=True, shading=self.run_state.shading())
+            rec.update({"kind": "test", "step": self.step, "wall_s": round(w_train, 3), "final": final})
+            for h in self.hooks:
+                h.on_evaluation(self, rec)
+            self.mlog.write(rec)
+            self.last_test = rec
+            self.adapt.on_test_eval(self.step, rec, progress=self.progress())
+        self.last_eval_wall = self.clock.wall()
+
+    def checkpoint(self) -> None:
+        """``ckpt_<step>.pt`` and ``latest.pt``: weights, optimiser, RNG, run state, rule counters."""
+        with self.clock.paused():
+            extra = {"nonfinite": self.nonfinite, "adaptivity": self.adapt.state(),
+                     "run_state": self.run_state.to_dict(), "config_name": self.cfg.name,
+                     "world_from_norm": np.asarray(self.scene.world_from_norm, dtype=np.float64).tolist()}
+            if self.ema is not None:
+                extra["ema"] = self.ema.state_dict()
+            kw = dict(model=self.model, optimizer=self.optimizer, step=self.step, wall_s=self.clock.wall(),
+                      generator=self.gen, extra=extra)
+            save_checkpoint(self.dir / "checkpoints" / f"ckpt_{self.step:07d}.pt", **kw)
+            save_checkpoint(self.latest, **kw)
+            prune_checkpoints(self.dir / "checkpoints", self.cfg.train.keep_checkpoints)
+            self.callbacks.checkpoint(self.step, str(self.latest))
+            for h in self.hooks:
+                h.on_checkpoint(self, self.step, str(self.latest))
+
+    def _write_report(self, status: str) -> dict:
+        rep = self.adapt.report(step=self.step, status=status, nonfinite=self.nonfinite)
+        write_json_atomic(self.dir / "report.json", rep)
+        return rep

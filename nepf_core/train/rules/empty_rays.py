@@ -1,0 +1,68 @@
+"""Rays that meet no occupied cell leave the training batch, except a random ``miss_keep`` share.
+
+Such a ray crosses only cells where ``|f| > safety (r_h + delta/2) + k_s / s`` (occupancy rule
+(1), :mod:`nepf_core.render.occupancy`), so its opacity is ``<= ~e^{-k_s}`` and rendering it
+spends ``n_samples + n_importance`` SDF queries (with gradients) on empty space. The share kept
+lets the mask loss and the eikonal term still see empty space; each kept miss gets the
+importance weight ``RayBatch.weight = 1 / miss_keep`` (hits weigh 1) in the mask loss and in
+the eikonal mean, so their expectations stay the means over the drawn batch (unweighted,
+thinning would turn the eikonal into a near-surface term).
+
+Only with adaptivity on and an occupancy grid that has been refreshed. The NeuS sampler spreads
+a kept ray's samples over its whole chord, so a surface outside the occupied cells is still
+found, and then makes its cells occupied.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from nepf_core.train.decisions import Decision
+from nepf_core.train.rules.config import RuleConfig
+
+
+class EmptyRayRule:
+    def __init__(self, rc: RuleConfig) -> None:
+        self.rc = rc
+        self.last: float | None = None
+        """Share of the drawn rays left out at the last step (logged as ``rays_left_out``)."""
+        self.total, self.count = 0.0, 0
+
+    def mean_left_out(self) -> float | None:
+        """Mean over training steps of the share of drawn rays left out (report.json)."""
+        return self.total / self.count if self.count else None
+
+    def thin(self, model, rays, step: int, generator: torch.Generator | None,
+             first: bool) -> tuple[object, Decision | None]:
+        """``rays`` (``R``) -> ``(kept RayBatch (R' <= R, same order), decision or None)``;
+        ``first``: no ``empty_rays`` decision was recorded yet (it is recorded once)."""
+        occ = getattr(model, "occupancy", None)
+        if not self.rc.enabled or occ is None or int(occ.n_updates) == 0:
+            return rays, None
+        from nepf_core.render.sampling import near_far_from_sphere
+        near, far, _ = near_far_from_sphere(rays.origins, rays.directions)
+        hit = occ.ray_hits(rays.origins, rays.directions, near, far)
+        u = torch.rand(hit.shape, generator=generator).to(hit.device)
+        keep = hit | (u < self.rc.miss_keep)
+        thin = int(keep.sum()) >= 8 and not bool(keep.all())
+        dropped = 1.0 - float(keep.float().mean()) if thin else 0.0
+        self.last = dropped
+        self.total += dropped
+        self.count += 1
+        if not thin:
+            return rays, None
+        decision = None
+        if first:
+            decision = Decision("empty_rays", {"left_out_fraction": round(dropped, 4), "miss_keep": self.rc.miss_keep},
+                                f"{1 - float(hit.float().mean()):.1%} of the drawn rays meet no occupied cell (opacity "
+                                f"<= ~e^-{occ.cfg.k_s:g}): they leave the batch except a random {self.rc.miss_keep:.0%}, "
+                                "which keep the mask loss and the eikonal term on empty space", step)
+        kept = rays.index(keep.nonzero(as_tuple=True)[0])
+        kept.weight = torch.where(hit[keep], 1.0, 1.0 / max(self.rc.miss_keep, 1e-12)).to(rays.origins.dtype)
+        return kept, decision
+
+    def state(self) -> dict:
+        return {"drop_sum": self.total, "drop_n": self.count}
+
+    def load_state(self, s: dict) -> None:
+        self.total, self.count = s.get("drop_sum", 0.0), s.get("drop_n", 0)

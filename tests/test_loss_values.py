@@ -1,0 +1,181 @@
+"""Every loss term of :func:`nepf_core.losses.compute_losses` by value, on three hand-worked rays.
+
+Rays (linear colour space unless a test says otherwise; mask = foreground):
+
+    ray   mask  L_gt             L_r              L_surf           L_vol            w_max  sum w
+    0     1     (.5, .5, .5)     (.7, .5, .5)     (.4, .5, .5)     (.5, .8, .5)     .75    .9
+    1     1     (.1, .2, .3)     (.1, .2, .3)     (.1, .5, .3)     (.1, .2, .0)     .5     .5
+    2     0     (0, 0, 0)        (.9, .9, .9)     (.2, .2, .2)     (.3, .3, .3)     .1     .2
+
+Surface quantities at the max-weight point (ray 2 is background and must not count):
+
+    ray   x            n          l              I
+    0     (0, 0, 0)    (0, 0, 1)  (1, 0, 0)      1.0
+    1     (.2, 0, 0)   (0, 1, 0)  (.6, .8, 0)    1.4
+    2     (5, 5, 5)    (1, 0, 0)  (0, 0, -1)     9.0
+
+Batch variances over rays 0, 1 (population, summed over channels): var x = .01, var I = .04,
+var n = .25 + .25 = .5, var l = .04 + .16 = .2.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from nepf_core.losses import LossConfig, compute_losses, light_variance_loss, srgb_encode
+from nepf_core.rays import RayBatch
+from nepf_core.render.renderer import RenderOutput
+
+T = lambda *v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+
+GT = T([.5, .5, .5], [.1, .2, .3], [0., 0., 0.])
+RGB_R = T([.7, .5, .5], [.1, .2, .3], [.9, .9, .9])
+RGB_SURF = T([.4, .5, .5], [.1, .5, .3], [.2, .2, .2])
+RGB_VOL = T([.5, .8, .5], [.1, .2, .0], [.3, .3, .3])
+W_MAX = T(.75, .5, .1)
+W_SUM = T(.9, .5, .2)
+MASK = T(1., 1., 0.)
+
+# hand-worked values (see the module docstring)
+L_R = (0.2 + 0.0) / (3 * 2)                          # |.7-.5| on ray 0 only; 3 channels x 2 fg rays
+L_SURF = (0.25 * 0.3 / 3 + 0.5 * 0.3 / 3) / 2        # (1 - w_max) mean_c |L_surf - L_r|, over 2 fg rays
+L_VOL = (0.3 + 0.3) / (3 * 2)
+L_LIGHT_PAPER = 1.0 * abs(.01 - .04) + 1.0 * abs(.5 - .2) + 0.1 * abs(.01 - .2)   # 0.349
+L_MASK = -(math.log(.9) + math.log(.5) + math.log(1 - .2)) / 3
+
+
+def val(t: torch.Tensor) -> float:
+    return float(t.detach())
+
+
+def _out(**over) -> RenderOutput:
+    surf = {"x": T([0., 0., 0.], [.2, 0., 0.], [5., 5., 5.]), "normal": T([0., 0., 1.], [0., 1., 0.], [1., 0., 0.]),
+            "light_dir": T([1., 0., 0.], [.6, .8, 0.], [0., 0., -1.]), "intensity": T(1.0, 1.4, 9.0),
+            "albedo": T([.2, .2, .2], [.4, .4, .4], [.9, .9, .9]),
+            "albedo_jitter": T([.5, .2, .2], [.4, .4, .4], [0., 0., 0.])}
+    kw = dict(rgb_r=RGB_R.clone().requires_grad_(True), rgb_vol=RGB_VOL.clone(),
+              rgb_surf=RGB_SURF.clone().requires_grad_(True), weight_sum=W_SUM.clone(),
+              w_max=W_MAX.clone().requires_grad_(True), depth=torch.zeros(3, dtype=torch.float64),
+              eikonal=T(0.1, 0.3), hessian=T(1.0, 2.0, 6.0), surf=surf)
+    kw.update(over)
+    return RenderOutput(**kw)
+
+
+def _rays(**over) -> RayBatch:
+    kw = dict(origins=torch.zeros(3, 3, dtype=torch.float64), directions=torch.zeros(3, 3, dtype=torch.float64),
+              rgb=GT.clone(), mask=MASK.clone())
+    kw.update(over)
+    return RayBatch(**kw)
+
+
+def _cfg(**over) -> LossConfig:
+    return LossConfig(**{"color_space": "linear", **over})
+
+
+def test_color_terms_by_value():
+    L = compute_losses(_out(), _rays(), _cfg(), use_mask=True)
+    assert val(L["loss_r"]) == pytest.approx(L_R, abs=1e-12)
+    assert val(L["loss_surf"]) == pytest.approx(L_SURF, abs=1e-12)   # 0.0375
+    assert val(L["loss_vol"]) == pytest.approx(L_VOL, abs=1e-12)
+
+
+def test_surf_loss_needs_the_one_minus_wmax_factor_and_the_radiance_target():
+    """The paper's L_surf against its two near misses: without ``(1 - w_max)`` it would read
+    (0.1 + 0.1) / 2 = 0.1; supervised by L_gt, (0.25 * 0.1/3 + 0.5 * 0.1) / 2 = 0.0292."""
+    got = val(compute_losses(_out(), _rays(), _cfg(), use_mask=True)["loss_surf"])
+    assert got == pytest.approx(0.0375, abs=1e-12)
+    assert abs(got - 0.1) > 1e-3 and abs(got - (0.25 * 0.1 / 3 + 0.5 * 0.1) / 2) > 1e-3
+    # the switches do what they say: the ablations give exactly those values
+    assert val(compute_losses(_out(), _rays(), _cfg(surf_one_minus_wmax=False), use_mask=True)["loss_surf"]) \
+        == pytest.approx(0.1, abs=1e-12)
+    assert val(compute_losses(_out(), _rays(), _cfg(surf_target="gt"), use_mask=True)["loss_surf"]) \
+        == pytest.approx((0.25 * 0.1 / 3 + 0.5 * 0.1) / 2, abs=1e-12)
+
+
+def test_surf_loss_gradient_stops_at_the_radiance_and_at_w_max():
+    out = _out()
+    L = compute_losses(out, _rays(), _cfg(w_r=0.0, lambda2_vol=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0,
+                                          w_mask=0.0), use_mask=True)
+    L["loss"].backward()
+    assert out.rgb_r.grad is None or float(out.rgb_r.grad.abs().sum()) == 0.0
+    assert out.w_max.grad is None or float(out.w_max.grad.abs().sum()) == 0.0
+    # d/dL_surf of lambda1 (1 - w_max) mean_c |L_surf - L_r| / 2: sign(err) * lambda1 (1 - w_max) / (3 * 2)
+    lam = LossConfig().lambda1_surf
+    want = torch.zeros(3, 3, dtype=torch.float64)
+    want[0, 0] = -lam * 0.25 / 6    # 0.4 < 0.7
+    want[1, 1] = lam * 0.5 / 6      # 0.5 > 0.2
+    assert torch.allclose(out.rgb_surf.grad, want, atol=1e-15)
+
+
+def test_without_masks_surface_rays_are_those_with_weight_sum_above_half():
+    L = compute_losses(_out(), _rays(mask=None), _cfg(), use_mask=True)
+    assert val(L["loss_r"]) == pytest.approx((0.2 + 0.0 + 2.7) / 9, abs=1e-12)   # every ray
+    assert val(L["loss_surf"]) == pytest.approx(0.25 * 0.3 / 3, abs=1e-12)      # ray 0 only (0.9 > 0.5)
+    assert val(L["loss_mask"]) == 0.0
+
+
+def test_srgb_colour_space_compares_encoded_values():
+    def enc(v):
+        return 12.92 * v if v <= 0.0031308 else 1.055 * v ** (1 / 2.4) - 0.055
+    want = sum(abs(enc(a) - enc(b)) for a, b in zip(RGB_R[:2].flatten().tolist(), GT[:2].flatten().tolist())) / 6
+    L = compute_losses(_out(), _rays(), LossConfig(color_space="srgb"), use_mask=True)
+    assert val(L["loss_r"]) == pytest.approx(want, abs=1e-12)
+    assert torch.allclose(srgb_encode(T(0.5)), T(enc(0.5)))
+
+
+def test_eikonal_hessian_mask_by_value():
+    L = compute_losses(_out(), _rays(), _cfg(), use_mask=True)
+    assert val(L["loss_eik"]) == pytest.approx(0.2, abs=1e-12)
+    assert val(L["loss_hess"]) == pytest.approx(3.0, abs=1e-12)
+    assert val(L["loss_mask"]) == pytest.approx(L_MASK, abs=1e-12)
+    # importance-weighted eikonal: (1 * 0.1 + 3 * 0.3) / 4
+    L = compute_losses(_out(eikonal_weight=T(1.0, 3.0)), _rays(), _cfg(), use_mask=True)
+    assert val(L["loss_eik"]) == pytest.approx(0.25, abs=1e-12)
+    # weight sums clipped to [1e-3, 1 - 1e-3] before the BCE: finite at exactly 1 and 0
+    L = compute_losses(_out(weight_sum=T(1.0, 1.0, 0.0)), _rays(), _cfg(), use_mask=True)
+    assert val(L["loss_mask"]) == pytest.approx(-math.log(1 - 1e-3), abs=1e-12)
+
+
+def test_light_variance_by_value_with_the_papers_lambdas():
+    L = compute_losses(_out(), _rays(), _cfg(), use_mask=True)
+    assert val(L["loss_light"]) == pytest.approx(L_LIGHT_PAPER, abs=1e-12)   # 0.349
+    swapped = 0.1 * abs(.01 - .04) + 1.0 * abs(.5 - .2) + 1.0 * abs(.01 - .2)  # 0.493 (l3 <-> l5)
+    assert abs(val(L["loss_light"]) - swapped) > 0.1
+
+
+def test_light_variance_each_lambda_weighs_its_own_pair():
+    """l3 = 1, l4 = 10, l5 = 100: 1 * |.01 - .04| + 10 * |.5 - .2| + 100 * |.01 - .2| = 22.03."""
+    s = _out().surf
+    keep = slice(0, 2)
+    got = light_variance_loss(s["x"][keep], s["normal"][keep], s["light_dir"][keep], s["intensity"][keep],
+                              1.0, 10.0, 100.0)
+    assert val(got) == pytest.approx(0.03 + 3.0 + 19.0, abs=1e-12)
+
+
+def test_albedo_priors_by_value():
+    # smoothness: ray 0 differs by (0.3, 0, 0) -> 0.1; ray 1 by 0; ray 2 is background
+    L = compute_losses(_out(), _rays(), _cfg(w_albedo_smooth=1.0), use_mask=True)
+    assert val(L["loss_albedo_smooth"]) == pytest.approx(0.05, abs=1e-12)
+    # flatness (lobe off): luminance 0.2 and 0.4 around their mean 0.3 -> |2/3 - 1| = |4/3 - 1| = 1/3
+    L = compute_losses(_out(), _rays(), _cfg(w_albedo_flat=1.0), use_mask=True, specular=False)
+    assert val(L["loss_albedo_flat"]) == pytest.approx(1 / 3, abs=1e-12)
+    L = compute_losses(_out(), _rays(), _cfg(w_albedo_flat=1.0), use_mask=True, specular=True)
+    assert val(L["loss_albedo_flat"]) == 0.0
+
+
+def test_total_is_each_term_times_its_own_weight():
+    cfg = _cfg(w_r=1.0, lambda1_surf=0.5, lambda2_vol=0.25, w_eikonal=0.125, w_hessian=0.0625, w_light=2.0,
+               w_mask=4.0)
+    L = compute_losses(_out(), _rays(), cfg, use_mask=True)
+    want = (L_R + 0.5 * L_SURF + 0.25 * L_VOL + 0.125 * 0.2 + 0.0625 * 3.0 + 2.0 * L_LIGHT_PAPER
+            + 4.0 * L_MASK)
+    assert val(L["loss"]) == pytest.approx(want, abs=1e-12)
+
+
+def test_a_zero_weight_switches_its_term_off():
+    cfg = _cfg(w_r=0.0, lambda1_surf=0.0, lambda2_vol=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0, w_mask=0.0)
+    L = compute_losses(_out(), _rays(), cfg, use_mask=True)
+    assert all(val(v) == 0.0 for v in L.values())

@@ -1,0 +1,208 @@
+"""Decisions from the data (masks, background, visual hull) and empty space (occupancy grid,
+rays that meet no occupied cell, their importance weights), with two short real fits."""
+
+from __future__ import annotations
+
+import json
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from nepf_core.train.adaptivity import Adaptivity
+from nepf_core.train.rules.config import RuleConfig
+from nepf_core.train.run_state import RunState
+from rule_fixtures import fast, make_adapt, named, records, tiny
+
+
+@pytest.mark.parametrize("has_masks", [True, False])
+def test_mask_and_background_decisions(has_masks):
+    a, rs = make_adapt()
+    rs.background = not has_masks  # the opposite of what should be decided
+    a.before_training(SimpleNamespace(has_masks=has_masks))
+    assert rs.use_mask_loss is has_masks
+    assert rs.background is (not has_masks)
+    (m,) = named(a, "mask_loss")
+    (b,) = named(a, "background_model")
+    assert m["value"] is has_masks and b["value"] is (not has_masks)
+    assert m["reason"] and b["reason"]
+    assert not named(a, "empty_space_skipping")  # tiny has no occupancy grid
+
+
+def test_mask_loss_off_when_its_weight_is_zero_and_occupancy_recorded():
+    cfg = fast()
+    cfg.loss.w_mask = 0.0
+    rs = RunState.from_config(cfg)
+    a = Adaptivity(RuleConfig.from_config(cfg, iters_fixed=True), rs)
+    a.before_training(SimpleNamespace(has_masks=True))
+    assert rs.use_mask_loss is False and rs.background is False
+    (e,) = named(a, "empty_space_skipping")
+    assert e["value"] is True and "64^3" in e["reason"]
+
+
+def test_fit_without_masks_uses_background_and_no_mask_loss(tmp_path):
+    from nepf_core.data.detect import load_scene
+    from nepf_core.data.synth import make_scene
+    from nepf_core.train import fit, load_model
+
+    make_scene(tmp_path / "s", n_views=4, n_test=0, resolution=24, supersample=1, masks=False, write_mesh=False)
+    scene = load_scene(tmp_path / "s" / "dtu")
+    assert not scene.has_masks
+    cfg = tiny()
+    cfg.train.iters, cfg.train.batch_rays, cfg.train.log_every, cfg.train.sync_every = 4, 64, 2, 0
+    res = fit(scene, tmp_path / "run", cfg, device="cpu")
+    rep = json.loads((tmp_path / "run" / "report.json").read_text())
+    dec = {d["decision"]: d for d in rep["decisions"]}
+    assert dec["mask_loss"]["value"] is False and dec["background_model"]["value"] is True
+    assert rep["final_switches"]["mask_loss"] is False and rep["final_switches"]["background"] is True
+    assert rep["run_state"]["background"] is True and rep["run_state"]["use_mask_loss"] is False
+    assert res.report == rep
+    for r in records(tmp_path / "run"):
+        assert r["loss_mask"] == 0.0
+    # config.json is what was asked (no background); the checkpoint's run state rebuilds it
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["model"]["background"] is False
+    model, _, _ = load_model(tmp_path / "run", "cpu")
+    assert model.background is not None
+
+
+@pytest.mark.parametrize("adaptive", [True, False])
+def test_fast_fit_with_masks_carves_the_visual_hull_and_leaves_empty_rays_out(tmp_path, adaptive):
+    from nepf_core.data.detect import load_scene
+    from nepf_core.data.synth import make_scene
+    from nepf_core.train import fit
+
+    # a wide field of view, so the object covers part of each frame and the hull culls cells
+    make_scene(tmp_path / "s", n_views=6, n_test=0, resolution=24, supersample=1, fov_deg=75.0, write_mesh=False)
+    scene = load_scene(tmp_path / "s" / "dtu")
+    cfg = fast()
+    cfg.model.sdf_grid = {"base_resolution": 8, "max_resolution": 32}
+    cfg.model.occupancy_resolution = 16
+    cfg.train.iters, cfg.train.batch_rays, cfg.train.log_every = 6, 64, 2
+    cfg.train.sync_every, cfg.train.eval_every_s, cfg.train.occupancy_every = 0, 0.0, 3
+    cfg.train.adaptive = adaptive
+    run = tmp_path / "run"
+    fit(scene, run, cfg, device="cpu")
+    rep = json.loads((run / "report.json").read_text())
+    dec = {d["decision"]: d for d in rep["decisions"]}
+    if not adaptive:  # the everything-on baseline keeps the whole grid: no hull carving
+        assert dec["visual_hull"]["value"] is False and "disabled" in dec["visual_hull"]["reason"]
+        assert dec["empty_space_skipping"]["value"] is False and "rays_left_out_fraction" not in rep
+        ck = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)["model"]
+        assert bool(ck["hull"].all())
+        return
+    assert dec["mask_loss"]["value"] is True and dec["background_model"]["value"] is False
+    assert dec["empty_space_skipping"]["value"] is True
+    assert dec["visual_hull"]["value"] is True and "culled" in dec["visual_hull"]["reason"]
+    assert 0.0 < rep["occupied_fraction"] < 1.0
+    train = [r for r in records(run) if r["kind"] == "train"]
+    assert 0.0 < rep["rays_left_out_fraction"] < 1.0 and rep["rays_left_out_note"]
+    assert "no occupied cell" in dec["empty_rays"]["reason"]
+    assert train and all(0.0 <= r["rays_left_out"] < 1.0 for r in train)
+    assert any(r["batch_rays"] < cfg.train.batch_rays for r in train)
+    # no samples outside the mask bounds: the occupancy grid never exceeds the visual hull
+    ck = torch.load(run / "checkpoints" / "latest.pt", weights_only=False)["model"]
+    hull, occ = ck["hull"], ck["occupancy.occ"]
+    assert 0.0 < hull.float().mean() < 1.0
+    assert not (occ & ~hull).any()
+
+
+def _sphere_model_and_rays(n_hit=24, n_miss=40):
+    """fast model whose occupancy grid holds the init sphere (r = 0.5): rays from distance 3
+    towards the centre hit it, rays pointing away miss every occupied cell."""
+    from nepf_core.model import NePFModel
+    from nepf_core.rays import RayBatch
+    cfg = fast()
+    model = NePFModel(cfg.model)
+    model.occupancy.update(model.sdf.sdf, inv_s=1e4)
+    g = torch.Generator().manual_seed(0)
+    p = torch.nn.functional.normalize(torch.randn(n_hit + n_miss, 3, generator=g), dim=-1)
+    o = 3.0 * p
+    d = torch.cat([-p[:n_hit], p[n_hit:]])
+    n = n_hit + n_miss
+    rays = RayBatch(o, d, torch.rand(n, 3, generator=g), (torch.arange(n) < n_hit).float(),
+                    torch.arange(n), torch.zeros(n, dtype=torch.bool))
+    return cfg, model, rays
+
+
+def _adapt(cfg, enabled=True, **rules):
+    cfg.train.adaptive = enabled
+    return Adaptivity(RuleConfig.from_config(cfg, iters_fixed=False, **rules), RunState.from_config(cfg))
+
+
+def test_rays_that_meet_no_occupied_cell_leave_the_batch():
+    cfg, model, rays = _sphere_model_and_rays()
+    a = _adapt(cfg, miss_keep=0.0)
+    kept = a.thin_empty_rays(model, rays, step=0, generator=torch.Generator().manual_seed(1))
+    assert torch.equal(kept.view, torch.arange(24))            # exactly the hits, in order
+    assert torch.equal(kept.mask, rays.mask[:24]) and kept.unlit.shape == (24,)
+    (d,) = named(a, "empty_rays")
+    assert d["value"]["left_out_fraction"] == pytest.approx(40 / 64, abs=1e-4) and "62.5%" in d["reason"]
+    assert a.step_stats()["rays_left_out"] == pytest.approx(40 / 64)
+    # a random share of the misses stays: about miss_keep of them, the hits always
+    b = _adapt(cfg, miss_keep=0.5)
+    n_kept = [len(b.thin_empty_rays(model, rays, step=s, generator=torch.Generator().manual_seed(s)))
+              for s in range(1, 41)]
+    assert min(n_kept) >= 24 and 24 + 0.35 * 40 < sum(n_kept) / len(n_kept) < 24 + 0.65 * 40
+    assert len(named(b, "empty_rays")) == 1                   # recorded once
+    rep = b.report(step=41, status="succeeded", nonfinite=0)
+    assert rep["rays_left_out_fraction"] == pytest.approx(sum(64 - k for k in n_kept) / 64 / 40)
+
+
+def test_empty_rays_stay_without_adaptivity_or_before_the_first_refresh():
+    cfg, model, rays = _sphere_model_and_rays()
+    assert _adapt(cfg, enabled=False).thin_empty_rays(model, rays, step=0) is rays
+    from nepf_core.model import NePFModel
+    fresh = NePFModel(cfg.model)                                # never refreshed: everything occupied
+    on = _adapt(cfg)
+    assert on.thin_empty_rays(fresh, rays, step=0) is rays and not named(on, "empty_rays")
+
+
+def test_kept_misses_carry_importance_weights_and_the_mask_loss_stays_unbiased():
+    from nepf_core.losses import mask_bce
+    cfg, model, rays = _sphere_model_and_rays()
+    a = _adapt(cfg, miss_keep=0.25)
+    g = torch.Generator().manual_seed(7)
+    ws = torch.rand(len(rays), generator=g)            # a fixed "rendered" opacity per drawn ray
+    full = float(mask_bce(ws, rays.mask))               # mean over the whole drawn batch
+    vals = []
+    for s in range(400):
+        kept = a.thin_empty_rays(model, rays, step=s, generator=torch.Generator().manual_seed(100 + s))
+        hit = kept.view < 24
+        assert torch.equal(kept.weight[hit], torch.ones(int(hit.sum())))
+        assert torch.allclose(kept.weight[~hit], torch.full((int((~hit).sum()),), 4.0))
+        vals.append(float(mask_bce(ws[kept.view], kept.mask, kept.weight)))
+    assert abs(sum(vals) / len(vals) - full) < 0.02 * full
+    # hand value of the weighted mean: BCE(0.5, 1) = BCE(0.5, 0) = ln 2, BCE(0.9, 1) = -ln 0.9
+    w = torch.tensor([0.5, 0.9]); m = torch.tensor([0.0, 1.0]); q = torch.tensor([3.0, 1.0])
+    assert float(mask_bce(w, m, q)) == pytest.approx((3 * math.log(2) - math.log(0.9)) / 4, rel=1e-5)
+    assert float(mask_bce(w, m)) == pytest.approx((math.log(2) - math.log(0.9)) / 2, rel=1e-5)
+
+
+def test_eikonal_mean_weighs_each_sample_by_its_rays_importance_weight():
+    """A ray kept with weight 3 counts like three copies of it, in the eikonal mean as in the
+    mask loss, so thinning a batch does not turn the eikonal into a near-surface term."""
+    from nepf_core.losses import compute_losses, weighted_mean
+    from nepf_core.render.renderer import render_rays
+    assert float(weighted_mean(torch.tensor([1.0, 2.0, 3.0]), torch.tensor([1.0, 1.0, 2.0]))) == pytest.approx(2.25)
+    assert float(weighted_mean(torch.tensor([1.0, 2.0, 3.0]), None)) == pytest.approx(2.0)
+    cfg, model, rays = _sphere_model_and_rays(n_hit=3, n_miss=3)
+    with torch.no_grad():   # an SDF that is not eikonal-exact, so the residual is not 0
+        for p in model.sdf.parameters():
+            p.add_(0.05 * torch.randn(p.shape, generator=torch.Generator().manual_seed(3)))
+    cfg.render.perturb = False
+    cfg.render.eikonal_fraction = 0.0   # deterministic sample set: head samples only
+    cfg.render.n_samples, cfg.render.n_importance = 48, 0
+    reps = torch.tensor([1, 2, 1, 3, 1, 2])
+    dup = rays.index(torch.repeat_interleave(torch.arange(6), reps))
+    weighted = rays.index(torch.arange(6))
+    weighted.weight = reps.float()
+
+    def terms(batch):
+        L = compute_losses(render_rays(model, batch, cfg.render, train=True), batch, cfg.loss, use_mask=True)
+        return {k: float(v.detach()) for k, v in L.items()}
+    lw, ld, lu = terms(weighted), terms(dup), terms(rays.index(torch.arange(6)))
+    assert ld["loss_eik"] > 1e-3
+    assert lw["loss_eik"] == pytest.approx(ld["loss_eik"], rel=1e-4)
+    assert lw["loss_mask"] == pytest.approx(ld["loss_mask"], rel=1e-4)
+    assert abs(lu["loss_eik"] - ld["loss_eik"]) > 1e-4   # the weights matter here
