@@ -18,6 +18,16 @@ class JobConfig(BaseModel):
     max_image_side: Optional[int] = Field(
         None, ge=8, description="Working resolution: longer image sides are area-resampled down to it at load "
                                 "(at most NEPF_MAX_IMAGE_SIDE; None: that ceiling).")
+    holdout_every: Optional[int] = Field(
+        None, ge=0, description="Views 0, N, 2N, ... are held out of training and evaluated on a wall-clock "
+                                "schedule (the error-against-time chart). 0: train on all views; otherwise "
+                                "2..n_views/2 (at least two held out, at least every other view training). "
+                                "Default: 8 for 16 or more views, else 0; the job shows the value used.")
+    texture_size: Optional[Literal[256, 512, 1024, 2048]] = Field(
+        None, description="Baked texture size of the export (None: NEPF_EXPORT_TEXTURE_SIZE, else the preset's).")
+    max_faces: Optional[int] = Field(
+        None, ge=1_000, le=2_000_000, description="Face budget of the exported mesh (None: NEPF_EXPORT_MAX_FACES, "
+                                                  "else the preset's).")
 
 
 class Progress(BaseModel):
@@ -66,7 +76,8 @@ class JobList(BaseModel):
 class MetricsPage(BaseModel):
     records: list[dict[str, Any]] = Field(
         description="metrics.jsonl records: step, wall_s, losses; kind=sync: psnr_r/psnr_surf/psnr_vol; "
-                    "kind=test: test_psnr, test_psnr_radiance, chamfer, albedo_psnr.")
+                    "kind=test (held-out views): test_psnr (masked where masks exist), test_psnr_full, "
+                    "test_psnr_radiance, test_ssim, test_views; with ground truth chamfer, albedo_psnr.")
     since: int = Field(description="The cursor this page starts at.")
     next_since: int = Field(description="Pass as ?since= to get only newer records.")
     status: Status

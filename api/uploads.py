@@ -140,64 +140,6 @@ async def receive_multipart(stream: AsyncIterator[bytes], content_type: str, sta
     return out
 
 
-# --------------------------------------------------------------------------- config
-def parse_config(raw: Optional[bytes], settings: Settings) -> dict:
-    """The job config: ``{"preset", "iters", "time_budget_s", "name", "max_image_side"}`` (all optional).
-
-    ``max_image_side``: the working resolution the job trains at, at most the ceiling
-    ``NEPF_MAX_IMAGE_SIDE`` (None: the ceiling)."""
-    cfg: dict = {}
-    if raw is not None and raw.strip():
-        try:
-            cfg = json.loads(raw.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ApiError(422, "invalid_config", f"'config' is not valid JSON: {exc}") from None
-        if not isinstance(cfg, dict):
-            raise ApiError(422, "invalid_config", "'config' must be a JSON object")
-    allowed = {"preset", "iters", "time_budget_s", "name", "max_image_side"}
-    extra = sorted(set(cfg) - allowed)
-    if extra:
-        raise ApiError(422, "invalid_config",
-                       f"unknown config key(s) {extra}; allowed: {sorted(allowed)}")
-    preset = cfg.get("preset", settings.default_preset)
-    if preset not in ("fast", "paper", "tiny"):
-        raise ApiError(422, "invalid_config", "config.preset must be one of fast, paper, tiny")
-    iters = cfg.get("iters")
-    if iters is not None and (isinstance(iters, bool) or not isinstance(iters, int)
-                              or not 1 <= iters <= 10_000_000):
-        raise ApiError(422, "invalid_config", "config.iters must be an integer in [1, 10000000]")
-    budget = cfg.get("time_budget_s")
-    if budget is not None and (isinstance(budget, bool) or not isinstance(budget, (int, float))
-                               or not 0 < float(budget) <= 30 * 24 * 3600 or budget != budget):
-        raise ApiError(422, "invalid_config", "config.time_budget_s must be a number in (0, 2592000]")
-    name = cfg.get("name")
-    if name is not None and (not isinstance(name, str) or len(name) > 200 or not name.isprintable()):
-        raise ApiError(422, "invalid_config", "config.name must be a printable string of at most 200 characters")
-    return {"preset": preset, "iters": iters,
-            "time_budget_s": float(budget) if budget is not None else None, "name": name,
-            "max_image_side": check_max_image_side(cfg.get("max_image_side"), settings)}
-
-
-#: smallest working side a job may ask for (the loader needs 8 pixels on the short side)
-MIN_IMAGE_SIDE = 8
-
-
-def check_max_image_side(value, settings: Settings) -> Optional[int]:
-    """A job's ``max_image_side``: an integer in [8, NEPF_MAX_IMAGE_SIDE] (no upper bound
-    when the ceiling is 0), or None."""
-    if value is None:
-        return None
-    ceiling = settings.max_image_side
-    if isinstance(value, bool) or not isinstance(value, int) or value < MIN_IMAGE_SIDE:
-        raise ApiError(422, "invalid_config", f"config.max_image_side must be an integer >= {MIN_IMAGE_SIDE}")
-    if ceiling and value > ceiling:
-        raise ApiError(422, "invalid_config",
-                       f"config.max_image_side = {value} is above this server's ceiling of {ceiling} "
-                       f"pixels (NEPF_MAX_IMAGE_SIDE); ask for {ceiling} or less")
-    return value
-
-
-
 # --------------------------------------------------------------------------- zip
 def dataset_root(extracted: Path) -> Path:
     """Descend through a single wrapping folder (``scan24.zip`` -> ``scan24/...``)."""

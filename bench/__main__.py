@@ -1,4 +1,4 @@
-"""``python -m bench run ...`` | ``python -m bench report DIR`` (see bench/README.md)."""
+"""``python -m bench run ...`` | ``python -m bench report DIR`` | ``python -m bench oracle SCENE...`` (see bench/README.md)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,10 @@ import sys
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
-        print("usage: python -m bench {run,report} ...\n\n"
+        print("usage: python -m bench {run,report,oracle} ...\n\n"
               "  run     run the benchmark (python -m bench run --help)\n"
-              "  report  rebuild table.md and plots from RESULTS_DIR/results.json\n\n"
+              "  report  rebuild table.md and plots from RESULTS_DIR/results.json\n"
+              "  oracle  relight PSNR of the ground truth shaded with our BSDF (python -m bench oracle --help)\n\n"
               "See bench/README.md.")
         return 0 if argv else 2
     cmd, rest = argv[0], argv[1:]
@@ -20,7 +21,10 @@ def main(argv: list[str] | None = None) -> int:
     if cmd == "report":
         from bench.report import main as report_main
         return report_main(rest)
-    print(f"unknown command {cmd!r}: use run or report", file=sys.stderr)
+    if cmd == "oracle":
+        from bench.oracle import main as oracle_main
+        return oracle_main(rest)
+    print(f"unknown command {cmd!r}: use run, report or oracle", file=sys.stderr)
     return 2
 
 

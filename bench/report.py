@@ -43,6 +43,8 @@ import statistics
 import sys
 from pathlib import Path
 
+from bench.relight_report import relight_row, relight_table_lines
+
 TOLERANCE_DB = 0.3
 SMOOTH_WINDOW = 3
 """The issue's "at <= 0.3 dB lower PSNR" (per-pair table, "within 0.3 dB" column)."""
@@ -211,6 +213,7 @@ def summarize(results: dict, target_psnr: float | None = None) -> dict:
             "cpu_util": _median([(r.get("cpu_user_s", 0) + r.get("cpu_sys_s", 0)) / r["process_wall_s"]
                                  for r in recs if r.get("process_wall_s")]),
             "loadavg_start": recs[0].get("loadavg_start"),
+            **relight_row(recs),
         })
     # common target X per scene
     for row in rows:
@@ -377,6 +380,7 @@ def write_table(results: dict, summary: dict, path: Path) -> None:
               "percentile; where the fixed light never reaches, no view constrains the albedo). X: `--target-psnr` or the lowest final masked PSNR of the scene's rows. "
               "CPU util: CPU seconds / process seconds of the run (at most the thread count; lower means "
               "the machine was shared or the run waited on I/O).", ""]
+    L += relight_table_lines(summary["rows"])
     errs = [(r["scene"], r["config"], r["variant"], e) for r in summary["rows"] for e in r["errors"]]
     if errs:
         L += ["Errors:", ""] + [f"* {s}/{c}/{v}: {e}" for s, c, v, e in errs] + [""]

@@ -7,7 +7,8 @@ For every (scene, config, variant, repeat), one at a time, a **subprocess** runs
   ``gt/arrays_test.npz``): ``nepf_core.jobs.run_job(..., export=False, device="cpu")`` with
   held-out evaluation every ``--eval-every`` training seconds;
 * real datasets (``--dataset dtu_scan24``): ``load_scene(path, downscale=D)``, every
-  ``--holdout-every``-th view (indices 0, K, 2K, ...) held out, ``nepf_core.train.fit`` with
+  ``--holdout-every``-th view (indices 0, K, 2K, ...) held out (``nepf_core.data.split``,
+  the rule ``nepf fit --holdout-every`` and the service use), ``nepf_core.train.fit`` with
   ``EvalTargets(test_scene=...)``, then ``RUN/mesh.ply`` (world coordinates);
 * then re-evaluates Chamfer on the final model with a finer mesh (default 256³, 100k
   samples per mesh) when a GT mesh exists, and writes ``RUN/bench_child.json``.
@@ -90,24 +91,18 @@ def _fit_real(spec: dict, run: Path, overrides: dict, callbacks=None) -> dict:
     import numpy as np
 
     from nepf_core.data.detect import load_scene
-    from nepf_core.train import EvalTargets, fit, load_model
-    from nepf_core.jobs import build_config
+    from nepf_core.train import fit, load_model
+    from nepf_core.jobs import build_config, held_out_targets
 
     full = load_scene(spec["data_dir"], downscale=int(spec.get("downscale", 1)))
-    k = int(spec["holdout_every"])
-    idx = np.arange(full.n_views)
-    test_idx, train_idx = idx[idx % k == 0], idx[idx % k != 0]
-    train, test = full.subset(train_idx), full.subset(test_idx)
-    train.split, test.split = "train", "test"
+    train, targets, split = held_out_targets(full, int(spec["holdout_every"]), has_test_set=False)
     cfg = build_config(spec["preset"], None, overrides)
     res = fit(train, run, cfg, device="cpu", callbacks=callbacks, resume=False, time_budget_s=spec["budget_s"],
-              targets=EvalTargets(test_scene=test), iters_fixed=False, log=print)
+              targets=targets, iters_fixed=False, log=print)
     summary = {"status": res.status, "step": res.step, "total": res.total, "wall_s": res.wall_s,
                "manifest": None, "report": res.report, "last_test": res.last_test,
                "nonfinite_steps": res.nonfinite_steps,
-               "split": {"n_train": int(len(train_idx)), "n_test": int(len(test_idx)),
-                         "test_views": [int(i) for i in test_idx], "holdout_every": k,
-                         "downscale": int(spec.get("downscale", 1)),
+               "split": {**split, "downscale": int(spec.get("downscale", 1)),
                          "resolution": [full.width, full.height]}}
     (run / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     t0 = time.perf_counter()
@@ -191,6 +186,13 @@ def child_main(spec_path: str) -> int:
         if spec.get("gt_mesh") and spec.get("chamfer_resolution", 0) > 0:
             result.update(_final_chamfer(run, spec["gt_mesh"], int(spec["chamfer_resolution"]),
                                          int(spec["chamfer_samples"])))
+        if spec["mode"] == "synthetic":
+            from bench.relight_eval import has_relight_truth, relight_metrics
+            if has_relight_truth(spec["scene_dir"]):
+                try:  # relight / material scores and the oracle (bench/relight_eval.py), after training
+                    result["relight_eval"] = relight_metrics(run, spec["scene_dir"])
+                except Exception as e:
+                    result["relight_eval"] = {"error": f"{type(e).__name__}: {e}"}
     except BaseException as e:  # record the failure (diverged, bad data, ...) and go on with the next run
         result["status"] = "failed"
         result["error"] = f"{type(e).__name__}: {e}"
@@ -456,6 +458,7 @@ def _collect(child: dict, run_dir: Path) -> dict:
         if k in child:
             rec[k] = child[k]
     rec.update(_metrics_summary(run_dir, child.get("evals")))
+    rec["relight_eval"] = child.get("relight_eval")
     ev = [e["eval_s"] for e in child.get("evals") or [] if e.get("eval_s") is not None]
     rec["eval_s_median"] = sorted(ev)[len(ev) // 2] if ev else None
     rec["n_evals"] = len(child.get("evals") or [])

@@ -114,9 +114,21 @@ def _stamp_legacy(conn: Connection, cfg: Config) -> bool:
     return True
 
 
+@contextlib.contextmanager
+def _quiet_alembic() -> Iterator[None]:
+    """Alembic logs its dialect and plugins at INFO on every start; ``upgrade`` logs what changed."""
+    logger = logging.getLogger("alembic")
+    level = logger.level
+    logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        logger.setLevel(level)
+
+
 def upgrade(engine: Engine, revision: str = "head") -> tuple[Optional[str], Optional[str]]:
     """Migrate ``engine``'s database to ``revision``; returns (revision before, revision after)."""
-    with _sqlite_file_lock(engine), engine.begin() as conn:
+    with _sqlite_file_lock(engine), _quiet_alembic(), engine.begin() as conn:
         if conn.dialect.name == "postgresql":
             conn.execute(text("SELECT pg_advisory_xact_lock(:k)"), {"k": PG_LOCK_KEY})
         cfg = alembic_config(conn)

@@ -288,7 +288,7 @@ def shade(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor, me
 
 
 def shade_fading_lobe(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness: Tensor, metallic: Tensor,
-                      intensity: Tensor, weight: float, *, lambertian: bool = False) -> Tensor:
+                      intensity: Tensor, weight: float, *, lambertian: bool = False, kind: str = "paper") -> Tensor:
     """Shading while a dropped GGX lobe fades out:
     ``L = ((1 - w m) f_d(c) + w f_s(c, r, m)) * I * max(n.l, 0)``.
 
@@ -297,9 +297,10 @@ def shade_fading_lobe(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness
     ``(1 - w) f(m = 0, no lobe) + w f(m)`` of the two end points: linear in ``w``, the image
     changes by a bounded amount per step while ``w`` goes from 1 to 0. Shapes: as :func:`shade`.
     """
-    f = bsdf_eval(n, l, v, albedo, roughness, torch.zeros_like(metallic), lambertian=lambertian, specular=False)
+    f = bsdf_eval(n, l, v, albedo, roughness, torch.zeros_like(metallic), lambertian=lambertian, specular=False,
+                  kind=kind)
     if weight > 0.0:
-        f_full = bsdf_eval(n, l, v, albedo, roughness, metallic, lambertian=lambertian, specular=True)
+        f_full = bsdf_eval(n, l, v, albedo, roughness, metallic, lambertian=lambertian, specular=True, kind=kind)
         f = (1.0 - weight) * f + weight * f_full
     return f * intensity * dot(n, l).clamp_min(0.0)
 

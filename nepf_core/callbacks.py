@@ -14,8 +14,10 @@ class FitCallbacks:
     """Optional hooks; any of them may be None.
 
     Attributes:
-        on_progress: called with ``{"step", "total", "fraction", "stage", "eta_s", "wall_s"}``
-            after every step (cheap: callers should throttle their own I/O).
+        on_progress: called with ``{"step", "total", "fraction", "stage", "eta_s", "ends_by",
+            "wall_s"}`` after every step (cheap: callers should throttle their own I/O);
+            ``eta_s`` is the time left to whichever limit ends the run first, ``ends_by`` which
+            (``"time"`` budget or ``"steps"``; :func:`nepf_core.train.schedule.run_eta`).
         on_metrics: called with each record also written to ``metrics.jsonl``.
         should_stop: polled every step; returning True stops training cooperatively
             (outputs are still written, the run is marked ``cancelled``).

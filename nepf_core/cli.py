@@ -17,43 +17,19 @@ def _device_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="where to run (default: auto)")
 
 
-def _progress_callbacks(total_hint: int):
-    from tqdm import tqdm
-
-    from nepf_core.callbacks import FitCallbacks
-    bar = tqdm(total=total_hint, unit="step", dynamic_ncols=True)
-
-    def on_progress(info: dict) -> None:
-        if info.get("total") and bar.total != info["total"]:
-            bar.total = info["total"]
-        if info.get("step") is not None and info["step"] > bar.n:
-            bar.update(info["step"] - bar.n)
-        eta = info.get("eta_s")
-        bar.set_postfix_str(f"{info.get('stage', '')} eta {eta:.0f}s" if eta is not None else info.get("stage", ""))
-
-    def on_metrics(rec: dict) -> None:
-        if rec.get("kind") == "test":
-            bar.write(f"[{rec['wall_s']:.0f}s] step {rec['step']}: test PSNR {rec.get('test_psnr', float('nan')):.2f} dB"
-                      + (f", albedo PSNR {rec['albedo_psnr']:.2f} dB" if rec.get("albedo_psnr") is not None else "")
-                      + (f", Chamfer {rec['chamfer']:.4f}" if rec.get("chamfer") is not None else ""))
-        elif rec.get("kind") == "sync":
-            bar.write(f"step {rec['step']}: sync PSNR L_r {rec['psnr_r']:.2f}  L_surf {rec['psnr_surf']:.2f}  "
-                      f"L_vol {rec['psnr_vol']:.2f} dB")
-
-    return FitCallbacks(on_progress=on_progress, on_metrics=on_metrics), bar
-
-
 def cmd_fit(a) -> int:
+    from nepf_core.cli_progress import progress_callbacks
     from nepf_core.jobs import run_job
-    cb, bar = _progress_callbacks(a.iters or 0)
+    cb, bar = progress_callbacks()
     try:
         summary = run_job(a.data, a.out, preset=a.config, iters=a.iters, time_budget_s=a.time_budget,
                           device=a.device, callbacks=cb, resume=a.resume, export=not a.no_export,
                           texture_size=a.texture_size, max_faces=a.faces, test_dir=a.eval_test,
-                          gt_mesh=a.gt_mesh, gt_albedo=a.gt_albedo, max_side=a.max_side, log=bar.write)
+                          gt_mesh=a.gt_mesh, gt_albedo=a.gt_albedo, max_side=a.max_side,
+                          holdout_every=a.holdout_every, log=bar.write)
     finally:
         bar.close()
-    print(json.dumps({k: summary[k] for k in ("status", "step", "total", "wall_s", "manifest")}, indent=2))
+    print(json.dumps({k: summary[k] for k in ("status", "step", "total", "wall_s", "manifest", "split")}, indent=2))
     return 0
 
 
@@ -128,6 +104,13 @@ def cmd_render(a) -> int:
     return 0
 
 
+def cmd_relight(a) -> int:
+    from nepf_core.relight.run import relight_run
+    info = relight_run(a.run, a.lights, a.cameras, a.out, a.device, max_side=a.max_side, bsdf_kind=a.bsdf)
+    print(f"relit {info['views']} views under {info['lights']} lights ({info['bsdf_kind']} BSDF) into {info['out']}")
+    return 0
+
+
 def cmd_eval(a) -> int:
     import numpy as np
 
@@ -155,6 +138,10 @@ def cmd_eval(a) -> int:
         cw, cu = chamfer_against_gt(ModelFieldQuery(model), state["extra"]["world_from_norm"], a.gt_mesh,
                                     resolution=a.resolution, device=next(model.parameters()).device)
         res["chamfer_world"], res["chamfer_unit_sphere"] = cw, cu
+    if a.relight or a.gt_maps:  # relight PSNR and material scores (nepf_core/relight/metrics.py)
+        from nepf_core.relight.evaluation import eval_section
+        res.update(eval_section(a.run, a.test, arr, scene.images, scene.masks, out_dir, relight_dir=a.relight,
+                                gt_maps=a.gt_maps, device=a.device, max_side=a.max_side))
     res["conventions"] = ("psnr_*/ssim_*: the surface PBR colour; radiance_psnr_*: the radiance network's "
                           "volume-rendered colour. PSNR/SSIM on sRGB values in [0,1]; masked = GT foreground pixels only (SSIM: "
                           "the mean of the SSIM map over them); Chamfer = point-to-mesh, mean of both directions, "
@@ -191,6 +178,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--time-budget", type=float, default=None, help="stop after this many seconds of training")
     p.add_argument("--resume", action="store_true", help="continue from RUN/checkpoints/latest.pt")
     p.add_argument("--eval-test", default=None, help="held-out dataset folder evaluated on a wall-clock schedule")
+    p.add_argument("--holdout-every", type=int, default=None, metavar="N",
+                   help="hold views 0, N, 2N, ... out of training and evaluate them on the wall-clock schedule "
+                        "(0: train on all; N in 2..views/2; default: 8 for 16 or more views, else 0, and 0 "
+                        "with --eval-test)")
     p.add_argument("--gt-mesh", default=None, help="ground-truth mesh (world coordinates) for Chamfer")
     p.add_argument("--gt-albedo", default=None, help="npz with 'albedo' [N,H,W,3] of the held-out views")
     p.add_argument("--no-export", action="store_true", help="skip the GLB/texture export at the end")
@@ -216,12 +207,27 @@ def build_parser() -> argparse.ArgumentParser:
     _device_arg(p)
     p.set_defaults(fn=cmd_render)
 
+    p = sub.add_parser("relight", help="render the recovered asset under point lights (lights.json), with shadows")
+    p.add_argument("run")
+    p.add_argument("--lights", required=True, help='lights.json: {"lights": [{"type": "point", "position_world": '
+                   '[x,y,z], "intensity_rgb": [r,g,b]}, ...]} in the input\'s world coordinates (radiant intensity)')
+    p.add_argument("--cameras", required=True, help="dataset folder whose cameras to render")
+    p.add_argument("--out", required=True, help="folder for light_K/NNN.png and arrays.npz")
+    p.add_argument("--bsdf", default=None, choices=["paper", "gltf"], help="BSDF (default: the run's)")
+    _max_side_arg(p)
+    _device_arg(p)
+    p.set_defaults(fn=cmd_relight)
+
     p = sub.add_parser("eval", help="PSNR/SSIM of the surface PBR on test views, Chamfer to a GT mesh")
     p.add_argument("run")
     p.add_argument("--test", required=True, help="held-out dataset folder")
     p.add_argument("--gt-mesh", default=None)
     p.add_argument("--resolution", type=int, default=256, help="marching-cubes resolution for Chamfer")
     p.add_argument("--out", default=None, help="folder for renders and eval.json (default RUN/eval)")
+    p.add_argument("--relight", default=None, help="relight ground truth (gt/relight: lights.json, arrays.npz) "
+                   "for the cameras of --test: adds relight_psnr")
+    p.add_argument("--gt-maps", default=None, help="GT maps of the --test views (gt/arrays_test.npz): adds albedo "
+                   "PSNR (all / lit), roughness and metallic MAE, normal MAE")
     _max_side_arg(p)
     _device_arg(p)
     p.set_defaults(fn=cmd_eval)

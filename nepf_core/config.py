@@ -143,7 +143,11 @@ def fast() -> NePFConfig:
     (docs/FAST.md, "Albedo in unlit regions"), and, only once adaptivity has dropped the specular
     lobe, an albedo flatness term (docs/FAST.md, "What fixed it"). L_surf is shaded at the SDF
     zero crossing of the max-weight section (``render.surface_refine``, docs/FAST.md "Shading
-    L_surf at the zero crossing"). Options tried for this preset and not adopted: docs/TRIED.md."""
+    L_surf at the zero crossing"). It shades with the glTF metallic-roughness BRDF
+    (``render.bsdf_kind="gltf"``: Lambert + Smith GGX), the BRDF three.js and Blender render the
+    exported GLB with, so its roughness and metallic mean there what they meant in training;
+    ``paper`` keeps the supplementary's BSDF (:mod:`nepf_core.bsdf`). Options tried for this
+    preset and not adopted: docs/TRIED.md."""
     head = HeadConfig(width=64, depth=2, activation="relu", n_freqs_v=4)
     return NePFConfig(
         name="fast",
@@ -153,7 +157,7 @@ def fast() -> NePFConfig:
         render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1,
                             normals="fd", alpha_mode="sample", head_weight_threshold=1e-4,
                             eikonal_fraction=0.1, unlit_albedo_stopgrad=True, albedo_smooth_sigma=0.02,
-                            surface_refine=True),
+                            surface_refine=True, bsdf_kind="gltf"),
         loss=LossConfig(w_hessian=0.0, w_albedo_smooth=2e-4, w_albedo_flat=3e-6),
         train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,
                           anneal_end=2000, log_every=20, sync_every=500, checkpoint_every=1000,

@@ -9,8 +9,14 @@ Contract (stable; the worker codes against it):
 * Resumes from ``run_dir/checkpoints/latest.pt`` when ``resume`` and it exists.
 * Returns a summary ``{"status": "succeeded"|"cancelled"|"stopped_early", "step", "total",
   "wall_s", "manifest": "manifest.json" (relative to run_dir, or None), "report": {...},
-  "working_size": [W, H] the images were trained at}``; also written to ``run_dir/summary.json``,
+  "working_size": [W, H] the images were trained at, "split": {"holdout_every", "n_train",
+  "n_test", "test_views"}}``; also written to ``run_dir/summary.json``,
   which the service serves, so it holds no absolute path.
+* ``holdout_every`` (None: 8 for 16 or more views, else 0; 0 with ``test_dir``): views
+  ``0, K, 2K, ...`` are held out of training and evaluated on the preset's wall-clock schedule
+  (``train.eval_every_s``) and at the end (``nepf_core.data.split``), every
+  ``split["eval_stride"]``-th pixel so that an evaluation renders at most
+  ``EVAL_PIXEL_BUDGET`` pixels; the summary's ``split`` (and ``report.json``'s) says which.
 * ``max_side`` (0/None: full size) is the working resolution of the training and held-out
   views: larger images are area-resampled at load, intrinsics scaled to match.
 * When ``callbacks.should_stop()`` turns True, training stops at the next step, a final
@@ -60,6 +66,33 @@ def build_config(preset: str = "fast", iters: int | None = None, overrides: dict
     return cfg
 
 
+def held_out_targets(scene, holdout_every: int | None, has_test_set: bool, eval_pixels: int | None = None):
+    """``(train scene, EvalTargets | None, split record)``: views ``0, K, 2K, ...`` of ``scene``
+    held out for evaluation (``nepf_core.data.split``; ``holdout_every=None``: the default
+    rule). A separate test set (``--eval-test``) and a held-out split exclude each other.
+    ``eval_pixels``: render at most this many held-out pixels per evaluation (a stride,
+    ``split["eval_stride"]``; None: the config's ``train.eval_stride`` alone)."""
+    from nepf_core.data.split import (check_holdout_every, default_holdout_every, eval_stride_for, split_info,
+                                      split_scene)
+    from nepf_core.train import EvalTargets
+
+    if holdout_every is None:
+        every = default_holdout_every(scene.n_views, has_test_set)
+    else:
+        every = check_holdout_every(holdout_every, scene.n_views)
+    if every and has_test_set:
+        raise ValueError(f"holdout_every = {every} and a separate test set (--eval-test) both give held-out "
+                         "views; use one of them (--holdout-every 0 with --eval-test)")
+    split = split_info(scene.n_views, every)
+    train, test = split_scene(scene, every)
+    if test is None:
+        return train, None, split
+    stride = None if eval_pixels is None else eval_stride_for(test.n_views, test.width, test.height, eval_pixels)
+    if stride is not None:
+        split["eval_stride"] = stride
+    return train, EvalTargets(test_scene=test, split=split, stride=stride), split
+
+
 EXPORT_DEFAULTS = {
     # tiny: seconds, for tests and demos; fast/paper: the issue's defaults (100k faces, 1024^2)
     "tiny": {"texture_size": 256, "max_faces": 5_000, "mesh_resolution": 64},
@@ -72,9 +105,11 @@ def run_job(data_dir, run_dir, *, preset: str = "fast", iters=None, time_budget_
             device: str = "auto", callbacks: FitCallbacks | None = None, resume: bool = True,
             export: bool = True, texture_size: int | None = None, max_faces: int | None = None,
             mesh_resolution: int | None = None, test_dir=None, gt_mesh=None, gt_albedo=None,
-            overrides: dict | None = None, max_side: int | None = None, log=print) -> dict:
+            overrides: dict | None = None, max_side: int | None = None, holdout_every: int | None = None,
+            log=print) -> dict:
     """Load ``data_dir``, fit, and export into ``run_dir``; see the module docstring."""
     from nepf_core.data.detect import load_scene
+    from nepf_core.data.split import EVAL_PIXEL_BUDGET
     from nepf_core.train import EvalTargets, fit
 
     cb = callbacks or FitCallbacks()
@@ -83,7 +118,8 @@ def run_job(data_dir, run_dir, *, preset: str = "fast", iters=None, time_budget_
     cb.progress({"step": 0, "total": 0, "fraction": 0.0, "stage": "loading", "eta_s": None, "wall_s": 0.0})
     scene = load_scene(data_dir, split="train", max_side=max_side)
     cfg = build_config(preset, iters, overrides)
-    targets = None
+    scene, targets, split = held_out_targets(scene, holdout_every, has_test_set=test_dir is not None,
+                                             eval_pixels=EVAL_PIXEL_BUDGET)
     if test_dir is not None:
         import numpy as np
         from nepf_core.reframe import load_held_out
@@ -106,7 +142,7 @@ def run_job(data_dir, run_dir, *, preset: str = "fast", iters=None, time_budget_
                                    mesh_resolution=mesh_resolution, log=log)
     summary = {"status": res.status, "step": res.step, "total": res.total, "wall_s": res.wall_s,
                "manifest": None if manifest_path is None else Path(manifest_path).relative_to(run).as_posix(),
-               "working_size": [scene.width, scene.height], "report": res.report,
+               "working_size": [scene.width, scene.height], "split": split, "report": res.report,
                "last_test": res.last_test, "nonfinite_steps": res.nonfinite_steps}
     (run / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     if manifest_path is not None:
@@ -122,7 +158,7 @@ def export_run(run_dir, *, device: str = "auto", texture_size: int = 1024, max_f
     from nepf_core.model import ModelFieldQuery
     from nepf_core.train import load_model
 
-    model, _cfg, state = load_model(run_dir, device)
+    model, cfg, state = load_model(run_dir, device)
     world_from_norm = state["extra"].get("world_from_norm")
     if world_from_norm is None:
         raise RuntimeError(f"{run_dir}: checkpoint has no world_from_norm")
@@ -131,5 +167,5 @@ def export_run(run_dir, *, device: str = "auto", texture_size: int = 1024, max_f
     # the material as the surface was shaded at the end of the run (a dropped lobe: metallic 0)
     export_asset(ModelFieldQuery(model, shading=state["run_state"].shading()), np.asarray(world_from_norm), run_dir,
                  texture_size=texture_size, max_faces=max_faces, mesh_resolution=mesh_resolution, device=dev, log=log,
-                 previews=previews)
+                 previews=previews, relit_bsdf=cfg.render.bsdf_kind)
     return Path(run_dir) / "manifest.json"

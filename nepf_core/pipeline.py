@@ -50,6 +50,8 @@ class JobRequest:
             ``nepf_core.jobs.EXPORT_DEFAULTS``).
         max_side: working resolution: longer image sides are area-resampled down to it at
             load, intrinsics scaled to match (None/0: full size).
+        holdout_every: views ``0, K, 2K, ...`` are held out of training and evaluated during
+            it (0: none; None: the default rule of ``nepf_core.data.split``).
     """
 
     data_dir: Path
@@ -65,6 +67,7 @@ class JobRequest:
     mesh_resolution: Optional[int] = None
     max_faces: Optional[int] = None
     max_side: Optional[int] = None
+    holdout_every: Optional[int] = None
 
 
 Pipeline = Callable[[JobRequest], dict]
@@ -84,7 +87,8 @@ def run_pipeline(request: JobRequest) -> dict:
                    time_budget_s=request.time_budget_s, device=request.device,
                    callbacks=request.callbacks, resume=request.resume,
                    texture_size=request.texture_size, mesh_resolution=request.mesh_resolution,
-                   max_faces=request.max_faces, overrides=overrides, max_side=request.max_side)
+                   max_faces=request.max_faces, overrides=overrides, max_side=request.max_side,
+                   holdout_every=request.holdout_every)
 
 
 def load_pipeline(spec: str, setting: str = "NEPF_PIPELINE") -> Pipeline:

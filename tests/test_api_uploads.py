@@ -222,7 +222,9 @@ def test_valid_upload_queues_job_with_location(make_client, tmp_path):
     job = r.json()
     assert r.headers["location"] == f"/jobs/{job['id']}"
     assert job["status"] == "queued" and job["config"] == {"preset": "tiny", "iters": 7, "time_budget_s": None,
-                                                           "name": "my scan", "max_image_side": None}
+                                                           "name": "my scan", "max_image_side": None,
+                                                           "texture_size": None, "max_faces": None,
+                                                           "holdout_every": 0}   # 6 views: none held out
     assert job["dataset"]["format"] == "dtu" and job["dataset"]["n_views"] == 6
     assert (data / "jobs" / job["id"] / "dataset" / "cameras.npz").is_file()
     assert list((data / "uploads").iterdir()) == []

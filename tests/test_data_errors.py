@@ -276,7 +276,8 @@ def test_validate_cli_ok_and_errors(tmp_path):
     assert rc == 0
     assert out == {"ok": True, "format": "dtu", "n_views": 8, "width": 40, "height": 32,
                    "working_width": 40, "working_height": 32, "has_masks": True,
-                   "splits": {"train": 8}, "total_pixels": 8 * 40 * 32, "root": "dtu"}
+                   "splits": {"train": 8}, "total_pixels": 8 * 40 * 32, "root": "dtu",
+                   "holdout_default_every": 0, "holdout_max_every": 4}   # 8 views: < 16, 8 // 2
     (scene / "dtu/image/001.png").write_bytes(b"garbage")
     (scene / "dtu/image/006.png").write_bytes(b"garbage")
     rc, out, err = _run_validate(scene)
@@ -290,7 +291,8 @@ def test_validate_function_blender_splits_and_bad_test_split(tmp_path):
     assert validate_dataset(b) == {"ok": True, "format": "blender", "n_views": 8, "width": 40,
                                    "height": 32, "working_width": 40, "working_height": 32,
                                    "has_masks": True, "splits": {"train": 8, "test": 2},
-                                   "total_pixels": (8 + 2) * 40 * 32, "root": "."}
+                                   "total_pixels": (8 + 2) * 40 * 32, "root": ".",
+                                   "holdout_default_every": 0, "holdout_max_every": 4}
     (b / "test/r_1.png").unlink()
     out = validate_dataset(b)
     assert out["ok"] is False

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import ast
 import re
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -156,10 +157,16 @@ def test_bench_is_not_installed_nor_shipped_but_runs_from_the_repo():
 
 
 def test_wheel_ships_the_migrations_and_not_bench(tmp_path):
+    """Built from a copy of the sources (setuptools writes build/ beside the sources)."""
+    src = tmp_path / "src"
+    for name in ("nepf_core", "jobstore", "api", "worker", "bench", "tests"):
+        shutil.copytree(REPO / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy2(REPO / name, src / name)
     r = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
-                        "-w", str(tmp_path), str(REPO)], capture_output=True, text=True, timeout=300)
+                        "-w", str(tmp_path / "dist"), str(src)], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
-    (wheel,) = tmp_path.glob("nepf-*.whl")
+    (wheel,) = (tmp_path / "dist").glob("nepf-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
     versions = sorted(p.name for p in (REPO / "jobstore/migrations/versions").glob("0*.py"))
     assert versions and {f"jobstore/migrations/versions/{v}" for v in versions} <= names

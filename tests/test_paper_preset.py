@@ -192,3 +192,23 @@ def test_photon_raw_outputs_map_to_angles_and_intensity():
     assert torch.allclose(intensity, torch.full((2,), 3.0), atol=1e-5)  # the default I0
     net.set_init_intensity(0.7)
     assert torch.allclose(net(x, n, feat)[1], torch.full((2,), 0.7), atol=1e-5)
+
+
+def test_presets_name_their_bsdf():
+    """``paper`` shades with the supplementary's BSDF, ``fast`` with the glTF metallic-roughness
+    BRDF (what the exported GLB is rendered with). The two differ by 4x in the lobe at normal
+    incidence (the supplementary's G/(4 n.l n.v) is 1/16 there, Smith's V is 1/4), worked by hand."""
+    from nepf_core.config import fast, paper
+    from nepf_core import bsdf
+    assert paper().render.bsdf_kind == "paper" and fast().render.bsdf_kind == "gltf"
+    n = torch.tensor([[0.0, 0.0, 1.0]])
+    l = torch.tensor([[0.0, 0.0, 1.0]])
+    c, r, m = torch.tensor([[0.8, 0.8, 0.8]]), torch.tensor([[0.3]]), torch.tensor([[1.0]])
+    f_paper = bsdf.bsdf_eval(n, l, l, c, r, m, kind="paper")
+    f_gltf = bsdf.bsdf_eval(n, l, l, c, r, m, kind="gltf")
+    # normal incidence, metal: f = F D G/(4 n.l n.v) with F = c; D = 1/(pi a^2) at n.h = 1 (a = r^2).
+    # gltf: V = G/(4 n.l n.v) = 1/4 -> f = c / (4 pi a^2); paper: G/(4..) = 1/16 -> f = c / (16 pi a^2)
+    # alpha: paper max(r^2, 1e-3); gltf 1e-3 + 0.999 r^2 (a floor that keeps d f / d r non-zero)
+    a_paper, a_gltf = 0.3 ** 2, 1e-3 + 0.999 * 0.3 ** 2
+    assert torch.allclose(f_gltf, c / (4 * math.pi * a_gltf ** 2), rtol=1e-3)
+    assert torch.allclose(f_paper, c / (16 * math.pi * a_paper ** 2), rtol=1e-3)

@@ -132,14 +132,15 @@ def test_kill9_real_pipeline_resumes_from_checkpoint(stack, worker):
     env = dict(REAL_PIPELINE_ENV, NEPF_CHECKPOINT_EVERY="2", NEPF_LEASE_S="4")
     w1 = worker("real-w1", **env)
     iters = 200   # long enough that the kill lands mid-run (with 8 the job once finished between poll and kill)
-    jid = upload(base, h, real_scene_zip(stack["tmp"]), {"preset": "tiny", "iters": iters}).json()["id"]
+    # no held-out split: this test is about resuming, and the evaluations only add time
+    jid = upload(base, h, real_scene_zip(stack["tmp"]), {"preset": "tiny", "iters": iters, "holdout_every": 0}).json()["id"]
     ckpt = stack["data"] / "jobs" / jid / "run" / "checkpoints" / "latest.pt"
     wait_for(lambda: ckpt.exists() and get_job(base, h, jid)["progress"]["step"] >= 3, 180, what="a checkpoint")
     w1.kill9()
     killed_at = get_job(base, h, jid)["progress"]["step"]
     assert killed_at < iters
     worker("real-w2", **env)
-    final = wait_status(base, h, jid, ("succeeded", "failed"), 180)
+    final = wait_status(base, h, jid, ("succeeded", "failed"), 360)   # 200 tiny steps + export on a loaded 2-core box
     assert final["status"] == "succeeded", final
     log = final["delivery"]["attempt_log"]
     assert final["delivery"]["attempts"] == 2 and len(log) == 2, log

@@ -38,6 +38,7 @@ def test_stale_files_and_dead_pids_do_not_count(tmp_path):
     (tmp_path / f"nepf-worker-{int(dead.stdout)}.alive").touch()
     (tmp_path / "nepf-worker-notapid.alive").touch()
     assert live_workers(tmp_path) == []
+    assert [p.name for p in tmp_path.iterdir()] == ["nepf-worker-notapid.alive"]   # the dead one is swept
 
 
 def test_check_needs_a_live_worker_and_a_reachable_broker(tmp_path):

@@ -214,6 +214,43 @@ def pipeline_small_export(request):
     return run_pipeline(replace(request, iters=iters, **WEB_TEST_EXPORT))
 
 
+def pipeline_held_out_standin(request):
+    """Stands in for the training in the browser test of the held-out split (no torch, ~15 s).
+
+    Like ``fit()`` with held-out views, it writes a ``kind: "test"`` record (wall-clock
+    schedule: every :data:`STANDIN_EVAL_EVERY` steps, and a final one) only when the job's
+    ``request.holdout_every`` reached it and is > 0, with ``test_views`` the number held out
+    (``ceil(n_views / K)``, ``n_views`` counted in the dataset's ``image/``). Train records
+    carry a loss; no export."""
+    run = Path(request.run_dir)
+    every = int(request.holdout_every or 0)
+    n_views = len(list(Path(request.data_dir, "image").glob("*.png")))
+    held = -(-n_views // every) if every else 0
+    total, t0 = STANDIN_STEPS, time.time()
+    status = "succeeded"
+    with open(run / "metrics.jsonl", "a") as f:
+        for step in range(1, total + 1):
+            if request.callbacks.stop_requested():
+                status = "cancelled"
+                break
+            time.sleep(STANDIN_STEP_S)
+            wall = round(time.time() - t0, 3)
+            f.write(json.dumps({"kind": "train", "step": step, "wall_s": wall, "loss": 1.0 / step}) + "\n")
+            if held and (step % STANDIN_EVAL_EVERY == 0 or step == total):
+                f.write(json.dumps({"kind": "test", "step": step, "wall_s": wall, "test_views": held,
+                                    "test_psnr": 12.0 + step / 10, "test_psnr_full": 10.0 + step / 10,
+                                    "test_psnr_radiance": 13.0 + step / 10, "final": step == total}) + "\n")
+            f.flush()
+            request.callbacks.progress({"step": step, "total": total, "fraction": step / total, "stage": "training",
+                                        "eta_s": (total - step) * STANDIN_STEP_S, "wall_s": wall})
+    return {"status": status, "step": step, "total": total, "wall_s": time.time() - t0, "manifest": None,
+            "split": {"holdout_every": every, "n_test": held, "n_train": n_views - held}}
+
+
+#: the stand-in's schedule: 150 steps of 0.1 s, a held-out evaluation every 10 steps
+STANDIN_STEPS, STANDIN_STEP_S, STANDIN_EVAL_EVERY = 150, 0.1, 10
+
+
 class Backend:
     """``nepf serve`` (API + embedded broker + one local worker) on a free port."""
 

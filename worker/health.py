@@ -59,7 +59,8 @@ def _pid_alive(pid: int) -> bool:
 
 
 def live_workers(directory: Optional[Path] = None, max_age_s: float = 3 * HEARTBEAT_S) -> list[int]:
-    """Pids of worker processes that are alive and touched their file within ``max_age_s``."""
+    """Pids of worker processes that are alive and touched their file within ``max_age_s``
+    (files of processes that are gone are removed)."""
     now = time.time()
     pids = []
     for f in (directory or heartbeat_dir()).glob(f"{PREFIX}*.alive"):
@@ -68,7 +69,11 @@ def live_workers(directory: Optional[Path] = None, max_age_s: float = 3 * HEARTB
             fresh = now - f.stat().st_mtime <= max_age_s
         except FileNotFoundError:   # its worker just stopped
             continue
-        if pid_text.isdigit() and fresh and _pid_alive(int(pid_text)):
+        if not pid_text.isdigit():
+            continue
+        if not _pid_alive(int(pid_text)):   # left by a killed worker
+            f.unlink(missing_ok=True)
+        elif fresh:
             pids.append(int(pid_text))
     return sorted(pids)
 

@@ -221,7 +221,8 @@ class JobRunner:
 
     def job_request(self, cfg: dict):
         """The pipeline's :class:`~nepf_core.pipeline.JobRequest`: the job's config (preset,
-        iters, time budget) and the worker's settings (device, checkpoint period, export sizes)."""
+        iters, time budget, working side, held-out split, export sizes) and the worker's settings
+        (device, checkpoint period, the export sizes a job does not set)."""
         from nepf_core.callbacks import FitCallbacks  # torch-free modules
         from nepf_core.pipeline import JobRequest
 
@@ -230,9 +231,12 @@ class JobRunner:
                           preset=cfg.get("preset") or s.default_preset, iters=cfg.get("iters"),
                           time_budget_s=cfg.get("time_budget_s"), device=s.device, resume=True,
                           callbacks=FitCallbacks(on_progress=self.on_progress, should_stop=self.should_stop),
-                          checkpoint_every=s.checkpoint_every, texture_size=s.export_texture_size,
-                          mesh_resolution=s.export_mesh_resolution, max_faces=s.export_max_faces,
-                          max_side=s.job_max_side(cfg.get("max_image_side")))
+                          checkpoint_every=s.checkpoint_every,
+                          texture_size=cfg.get("texture_size") or s.export_texture_size,
+                          mesh_resolution=s.export_mesh_resolution,
+                          max_faces=cfg.get("max_faces") or s.export_max_faces,
+                          max_side=s.job_max_side(cfg.get("max_image_side")),
+                          holdout_every=cfg.get("holdout_every"))
 
     def run(self) -> str:
         outcome = self.claim()

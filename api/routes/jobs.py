@@ -28,7 +28,8 @@ from ..deps import CredsDep, OwnerDep, ServiceDep, owner_from_header
 from ..errors import ApiError, not_found
 from ..metrics_index import METRICS
 from ..schemas import (Artifact, ArtifactList, ErrorBody, JobList, JobPublic, MetricsPage, Ticket)
-from ..uploads import check_images, dataset_root, parse_config, receive_multipart, validate_dataset
+from ..job_config import parse_config, resolve_holdout_every
+from ..uploads import check_images, dataset_root, receive_multipart, validate_dataset
 from ..zip_safety import MB, check_and_extract_zip
 
 log = logging.getLogger("nepf.api")
@@ -106,7 +107,9 @@ MULTIPART_DOC = {
                             "description": "A .zip of a DTU, Blender or instant-ngp dataset folder."},
                 "config": {"type": "string", "description":
                            'JSON object: {"preset": "fast|paper|tiny", "iters": int, '
-                           '"time_budget_s": number, "name": str, "max_image_side": int (<= NEPF_MAX_IMAGE_SIDE)}'},
+                           '"time_budget_s": number, "name": str, "max_image_side": int (<= NEPF_MAX_IMAGE_SIDE), '
+                           '"holdout_every": 0 or 2..n_views/2 (default 8 for 16+ views, else 0), '
+                           '"texture_size": 256|512|1024|2048, "max_faces": 1000..2000000}; see JobConfig'},
             }}}},
     }
 }
@@ -144,6 +147,7 @@ async def create_job(request: Request, svc: ServiceDep, owner: OwnerDep,
             return root, validate_dataset(root, settings, settings.job_max_side(cfg.get("max_image_side")))
 
         root, summary = await run_in_threadpool(heavy)
+        cfg, summary = resolve_holdout_every(cfg, summary)
         job_id = new_id()
         job_dir = settings.jobs_path / job_id
         job_dir.mkdir(parents=True)

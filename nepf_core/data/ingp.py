@@ -13,6 +13,14 @@ camera axes to OpenCV and compute our own unit-sphere normalisation (camera rule
 are ignored; ``aabb_scale`` is kept in ``Scene.extras``. ``cx``/``cy`` use pixel centres at
 +0.5 (COLMAP's convention), which is ``Scene``'s, so no shift.
 
+Region of interest: instant-ngp's object region is its unit cube, world half side ``0.5 / scale``
+(1.5 for the default 0.33) around ``(0.5 - offset) / scale`` (the origin for the default
+offset); ``aabb_scale`` only widens the box that holds the *background*. colmap2nerf scales
+the cameras so that they frame that cube, so the camera rule of ``normalize.py`` (the ball every
+camera sees whole, around the point closest to the optical axes) gives about the same region,
+and ``aabb_scale`` is not needed to place it. What lies outside the unit sphere is the
+background model's.
+
 Distortion (OpenCV radial-tangential, on normalised coordinates ``x = (u - cx)/fx``):
     ``r^2 = x^2 + y^2``, ``g = 1 + k1 r^2 + k2 r^4 + k3 r^6``
     ``x_d = x g + 2 p1 x y + p2 (r^2 + 2 x^2)``

@@ -5,7 +5,8 @@ JSON line and exits 0 when the dataset loads::
 
     {"ok": true, "format": "dtu", "n_views": 49, "width": 1600, "height": 1200,
      "working_width": 1600, "working_height": 1200, "has_masks": true,
-     "splits": {"train": 49}, "total_pixels": 94080000, "root": "sub/folder"}
+     "splits": {"train": 49}, "total_pixels": 94080000, "root": "sub/folder",
+     "holdout_default_every": 8, "holdout_max_every": 24}
 
 or exits 2 with ``{"ok": false, "errors": [DatasetError.to_dict(), ...]}``.
 
@@ -16,7 +17,8 @@ image and mask decoded one at a time and brought to the working resolution ``max
 (nothing is kept, so memory stays at one view). Structural errors stop the check;
 per-view errors are collected (at most :data:`MAX_ERRORS`). ``n_views``/``width``/
 ``height`` (full size) and ``working_width``/``working_height`` (the size a job trains
-at) describe the training split. No message carries the folder's absolute path.
+at) describe the training split; ``holdout_default_every`` / ``holdout_max_every`` are the
+default and the largest ``holdout_every`` for it (``split.py``). No message carries the folder's absolute path.
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ def validate_dataset(root: str | Path, *, max_side: int | None = None,
     from nepf_core.data.budget import check_total_pixels
     from nepf_core.data.detect import resolve_dataset
     from nepf_core.data.resample import grid_scale
+    from nepf_core.data.split import holdout_limits
     from nepf_core.data.views import check_max_side, check_same_alpha, check_same_size, read_view
 
     errors: list[dict] = []
@@ -95,7 +98,7 @@ def validate_dataset(root: str | Path, *, max_side: int | None = None,
     main = summary.get("train") or next(iter(summary.values()))
     rel_root = Path(folder).resolve().relative_to(Path(root).resolve()).as_posix()
     return {"ok": True, "format": fmt, **main, "splits": {k: v["n_views"] for k, v in summary.items()},
-            "total_pixels": total_pixels, "root": rel_root}
+            "total_pixels": total_pixels, "root": rel_root, **holdout_limits(main["n_views"])}
 
 
 def scrub_paths(result: dict, root: str | Path) -> dict:

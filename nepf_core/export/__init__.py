@@ -108,13 +108,16 @@ def export_asset(
     up: tuple[float, float, float] = (0.0, 0.0, 1.0),
     chunk: int = 65536,
     manifest: bool = True,
+    relit_bsdf: str = "paper",
 ) -> list[dict]:
     """Export the asset of a fitted model into ``out_dir`` (the run folder).
 
     Writes ``mesh.ply`` (world), ``textures/base_color.png`` (sRGB), ``textures/orm.png``
     (linear; R = occlusion = 1, G = roughness, B = metallic), ``asset.glb`` (world frame,
     see :mod:`nepf_core.export.glb`), ``light_field.json``, ``lights.json`` and, unless
-    ``previews=False`` or rendering fails (logged as a warning), ``previews/*.png``.
+    ``previews=False`` or rendering fails (logged as a warning), ``previews/*.png``, including the
+    canonical relit previews ``previews/relit_canonical_K.png`` and their record
+    ``previews/relit_canonical.json`` (:mod:`nepf_core.relight.previews`, BSDF ``relit_bsdf``).
     With ``manifest=True`` it then writes ``manifest.json`` for the whole folder.
 
     Args:
@@ -204,6 +207,15 @@ def export_asset(
                                    out_dir / "textures" / "base_color.png", out_dir, lights,
                                    frames=preview_frames, size=preview_size, up=up, log=log)
         t = stage("previews", t)
+        try:  # the three canonical relit previews (nepf_core/relight/previews.py), recorded in the manifest
+            from nepf_core.relight.previews import write_relit_previews
+            lo, hi = vw.min(0), vw.max(0)
+            centre = 0.5 * (lo + hi)
+            written += write_relit_previews(query, m, out_dir, centre, float(np.linalg.norm(vw - centre, axis=-1).max()),
+                                            up=up, size=preview_size, bsdf_kind=relit_bsdf, device=device)
+        except Exception as e:  # noqa: BLE001 -- previews never cost the export
+            log(f"warning: relit previews failed (export continues without them): {type(e).__name__}: {e}")
+        t = stage("relit_previews", t)
     timings["total"] = time.perf_counter() - t_all
     timings["cpu_total"] = time.process_time() - cpu_all  # this process only, all threads
     glb_mb = (out_dir / "asset.glb").stat().st_size / 2**20

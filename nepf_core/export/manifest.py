@@ -9,7 +9,7 @@ Classification (first match wins, paths relative to the run folder, posix):
 | ``textures/**`` | ``texture`` |
 | ``light_field.json`` / ``light_field.bin`` | ``light_field`` |
 | ``lights.json`` | ``lights`` |
-| ``previews/**.png`` | ``preview`` |
+| ``previews/**.png``, ``previews/relit_canonical.json`` | ``preview`` |
 | ``metrics.jsonl``, ``eval.json`` | ``metrics`` |
 | ``report.json``, ``summary.json`` (run_job), ``error_vs_time.txt`` (plot failure note) | ``report`` |
 | ``config.json`` | ``config`` |
@@ -53,7 +53,7 @@ def artifact_kind(rel: str) -> str | None:
         return "light_field"
     if len(parts) == 1 and name == "lights.json":
         return "lights"
-    if parts[0] == "previews" and suffix == ".png":
+    if parts[0] == "previews" and (suffix == ".png" or name == "relit_canonical.json"):
         return "preview"
     if len(parts) == 1 and name in ("metrics.jsonl", "eval.json"):
         return "metrics"
@@ -90,7 +90,9 @@ def manifest_entry(run_dir: str | Path, path: str | Path, kind: str | None = Non
 def write_manifest(run_dir: str | Path) -> dict:
     """Scan ``run_dir`` and write ``run_dir/manifest.json`` atomically.
 
-    Returns ``{"artifacts": [{"kind", "path", "bytes", "sha256"}, ...]}`` sorted by path.
+    Returns ``{"artifacts": [{"kind", "path", "bytes", "sha256"}, ...]}`` sorted by path, plus
+    ``relit_previews`` (the lights and camera of the canonical relit previews) when the folder has
+    ``previews/relit_canonical.json``.
     """
     run_dir = Path(run_dir)
     entries = []
@@ -106,6 +108,9 @@ def write_manifest(run_dir: str | Path) -> dict:
                 entries.append(manifest_entry(run_dir, full, kind))
     entries.sort(key=lambda e: e["path"])
     manifest = {"artifacts": entries}
+    relit = run_dir / "previews" / "relit_canonical.json"
+    if relit.is_file():  # the canonical relit previews' lights and camera (nepf_core/relight/previews.py)
+        manifest["relit_previews"] = json.loads(relit.read_text())
     out = run_dir / "manifest.json"
     tmp = run_dir / ".manifest.json.tmp"
     tmp.write_text(json.dumps(manifest, indent=2))

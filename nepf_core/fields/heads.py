@@ -37,6 +37,10 @@ class HeadConfig:
     """Read the SDF feature vector (paper: yes). The fast preset's photon network sets this
     False so the light field is a smooth function of (x, n) and cannot copy surface texture
     into the intensity (texture then has to go to the albedo)."""
+    roughness_min: float = 0.0
+    """Material head only: ``r = r_min + (1 - r_min) sigmoid(z)``. A lobe narrower than the
+    training views can sample is invisible, and metallic then only darkens the diffuse
+    ``(1 - m) f_d``: a floor keeps a metal's lobe visible, so darkening by metallic costs error."""
 
 
 class RadianceField(nn.Module):
@@ -107,14 +111,14 @@ class MaterialField(nn.Module):
             self.mlp.layers[-1].bias[4] = self.METALLIC_INIT_LOGIT
 
     METALLIC_INIT_LOGIT = -3.0
-    """A surface starts dielectric and turns metallic only if the data asks for it. From
-    metallic 0.5, a rough metal lobe explained the diffuse spot_textured scene as well as a
-    diffuse albedo did, and the run drifted to metallic 0.79 with an albedo uncorrelated to
-    the truth (measured on a fast 300 s run; see bench/RESULTS.md)."""
+    """A surface starts dielectric (metallic = sigmoid(-3) ~ 0.05) and turns metallic only if the
+    data asks for it: from metallic 0.5 a rough metal lobe can explain a diffuse surface as well
+    as a diffuse albedo does, and the fit drifts into that ambiguity (docs/FAST.md)."""
 
     def forward(self, x: Tensor, n: Tensor, feature: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         out = torch.sigmoid(self.mlp(torch.cat([positional_encoding(x, self.cfg.n_freqs_x), n, feature], dim=-1)))
-        return out[..., :3], out[..., 3], out[..., 4]
+        r_min = self.cfg.roughness_min
+        return out[..., :3], r_min + (1.0 - r_min) * out[..., 3], out[..., 4]
 
 
 class BackgroundField(nn.Module):

@@ -58,7 +58,14 @@ class RenderConfig:
     ``|H f|_F`` (:func:`nepf_core.fields.gradients.sdf_hessian_norm`: 6 gradient evaluations per
     point, so 0.1 adds 0.6 gradient evaluations per sample)."""
     lambertian: bool = False
-    """Use the Lambertian diffuse (paper ablation) instead of Disney + retro-reflection."""
+    """Use the Lambertian diffuse (paper ablation) instead of Disney + retro-reflection
+    (``bsdf_kind="paper"`` only; ``"gltf"`` is always Lambert)."""
+    bsdf_kind: str = "paper"
+    """The BSDF that shades L_surf / L_vol (:data:`nepf_core.bsdf.BSDF_KINDS`): ``"paper"`` is the
+    supplementary's Disney diffuse + GGX (its masking term makes the lobe about a quarter of a
+    standard GGX lobe); ``"gltf"`` is the glTF 2.0 metallic-roughness BRDF (Lambert + Smith GGX), the
+    one three.js and Blender render the exported GLB with, so the recovered roughness and metallic
+    mean the same there as in training."""
     specular: bool = True
     """Start with the GGX specular lobe (fit()'s adaptivity may drop it; the lobe in effect is
     the run state's :class:`Shading`, never written back here)."""
@@ -150,10 +157,11 @@ def _shade_points(model, cfg: RenderConfig, shading: Shading, xs: Tensor, vs: Te
         albedo_shade = torch.where(unlit[:, None], albedo.detach(), albedo)
     if not shading.specular:  # lobe dropped: (1 - w m) f_d(c) + w f_s, w fading to 0 (a dielectric diffuse)
         pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
-                                     intensity[:, None], shading.diffuse_metal_weight, lambertian=cfg.lambertian)
+                                     intensity[:, None], shading.diffuse_metal_weight, lambertian=cfg.lambertian,
+                                     kind=cfg.bsdf_kind)
     else:
         pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
-                         intensity[:, None], lambertian=cfg.lambertian, specular=True)
+                         intensity[:, None], lambertian=cfg.lambertian, specular=True, kind=cfg.bsdf_kind)
     return pbr, light_dir, intensity, albedo, rough, metal
 
 
@@ -292,7 +300,8 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         with torch.no_grad():
             diffuse_only = bsdf.shade(surf["normal"], surf["light_dir"], -d, surf["albedo"],
                                       surf["roughness"][:, None], surf["metallic"][:, None],
-                                      surf["intensity"][:, None], lambertian=cfg.lambertian, specular=False)
+                                      surf["intensity"][:, None], lambertian=cfg.lambertian, specular=False,
+                                      kind=cfg.bsdf_kind)
             total = rgb_surf.detach().sum(-1)
             surf["specular"] = ((total - diffuse_only.sum(-1)).clamp_min(0) / total.clamp_min(1e-6))
             surf["specular_abs"] = (rgb_surf.detach() - diffuse_only).clamp_min(0).mean(-1)

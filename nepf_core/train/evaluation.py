@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from nepf_core.data.scene import Scene
-from nepf_core.evaluate import albedo_psnr_aligned, psnr, render_view, srgb_np
+from nepf_core.evaluate import SSIM_BORDER, albedo_psnr_aligned, psnr, render_view, srgb_np, ssim
 from nepf_core.losses import srgb_encode
 from nepf_core.model import ModelFieldQuery
 from nepf_core.rays import PixelSampler, unlit_threshold
@@ -24,6 +24,12 @@ class EvalTargets:
     gt_albedo: np.ndarray | None = None
     """``[N_test, H, W, 3]`` linear albedo of the test views (for albedo PSNR)."""
     chamfer_resolution: int = 128
+    split: dict | None = None
+    """When ``test_scene`` was held out of the training set: ``nepf_core.data.split.split_info``
+    (written to ``report.json``)."""
+    stride: int | None = None
+    """Render every N-th pixel of these views at least (the larger of it and ``train.eval_stride``
+    applies; None: the config's alone)."""
 
 
 def sync_psnr(model, sampler: PixelSampler, cfg, views: list[int], n_rays: int, seed: int,
@@ -51,14 +57,31 @@ def sync_psnr(model, sampler: PixelSampler, cfg, views: list[int], n_rays: int, 
     return res
 
 
+def mean_ssim(pred: np.ndarray, gt: np.ndarray, masks: np.ndarray | None) -> dict:
+    """``{"test_ssim_full", "test_ssim"}`` of ``pred, gt [N, H, W, 3]`` sRGB in [0, 1]: the mean
+    over views of :func:`nepf_core.evaluate.ssim`, full-image, and with ``masks [N, H, W]`` over
+    each view's foreground (views with no foreground pixel left out); without masks
+    ``test_ssim`` is the full-image value, as ``test_psnr`` is. Empty for images smaller than
+    SSIM's 11-pixel Gaussian window."""
+    if min(gt.shape[1:3]) < 2 * SSIM_BORDER + 1:
+        return {}
+    full = float(np.mean([ssim(pred[i], gt[i]) for i in range(len(gt))]))
+    if masks is None:
+        return {"test_ssim_full": full, "test_ssim": full}
+    fg = [ssim(pred[i], gt[i], masks[i] > 0.5) for i in range(len(gt))]
+    fg = [v for v in fg if v == v]
+    return {"test_ssim_full": full, "test_ssim": float(np.mean(fg)) if fg else float("nan")}
+
+
 def evaluate_test(model, cfg, targets: EvalTargets, device, world_from_norm: np.ndarray,
                   stride: int, with_chamfer: bool, shading: Shading | None = None) -> dict:
-    """Held-out metrics: masked/full PBR PSNR, aligned albedo PSNR, Chamfer (when given).
+    """Held-out metrics: masked/full PBR PSNR and SSIM, aligned albedo PSNR, Chamfer (when given).
 
     ``test_psnr`` / ``test_psnr_full`` score the surface PBR colour (the method's relightable
     output); ``test_psnr_radiance`` / ``test_psnr_radiance_full`` score the outgoing-radiance
     network's volume-rendered colour ``sum_i w_i c_r(x_i, v)`` on the same pixels (the quantity a
-    plain NeuS reports, so NePF can be compared with one).
+    plain NeuS reports, so NePF can be compared with one). ``test_ssim`` / ``test_ssim_full``:
+    the PBR colour's SSIM, the same way (:func:`mean_ssim`); ``test_views``: how many views.
 
     ``albedo_psnr`` is over every foreground pixel; ``albedo_psnr_lit`` only over foreground
     pixels whose test image is lit (``max_c L_gt >= unlit_rel_threshold * q99``, the training
@@ -73,11 +96,13 @@ def evaluate_test(model, cfg, targets: EvalTargets, device, world_from_norm: np.
     gt = ts.images[:, ::stride, ::stride]
     gt_srgb = srgb_np(gt)
     m = None if ts.masks is None else ts.masks[:, ::stride, ::stride]
-    rec = {}
+    rec = {"test_views": ts.n_views}
     for key, colour in (("test_psnr", preds), ("test_psnr_radiance", rads)):
         c = srgb_np(np.stack(colour))
         rec[key + "_full"] = psnr(c, gt_srgb)
         rec[key] = rec[key + "_full"] if m is None else psnr(c, gt_srgb, m)
+        if key == "test_psnr":
+            rec.update(mean_ssim(c, gt_srgb, m))
     if targets.gt_albedo is not None and ts.masks is not None:
         ga = targets.gt_albedo[:, ::stride, ::stride]
         alb = np.stack(albs)

@@ -18,7 +18,6 @@ groups (grid tables at ``train.lr_grid``, the rest at ``train.lr``);
 from __future__ import annotations
 
 import dataclasses
-import time
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Sequence
@@ -42,7 +41,8 @@ from nepf_core.train.metrics_log import MetricsLog, plot_error_vs_time, write_js
 from nepf_core.train.result import FitError, FitResult
 from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.run_state import RunState
-from nepf_core.train.schedule import coarse_to_fine, cos_anneal_ratio, progress_fraction, scheduled_lr_factor
+from nepf_core.train.schedule import (coarse_to_fine, cos_anneal_ratio, progress_fraction, run_eta,
+                                     scheduled_lr_factor)
 from nepf_core.train.setup import init_radiance_to_data, make_optimizer, resolve_device, unlit_pixels
 from nepf_core.weight_average import ParamEMA
 
@@ -145,9 +145,9 @@ class TrainingRun:
     def emit_progress(self, stage: str) -> None:
         w = self.clock.wall()
         frac = self.progress()
-        eta = (w / frac - w) if frac > 1e-6 else None
+        eta, ends_by = run_eta(self.step, self.total, w, self.time_budget_s)
         info = {"step": self.step, "total": self.total, "fraction": frac, "stage": stage,
-                "eta_s": None if eta is None else round(eta, 1), "wall_s": round(w, 3)}
+                "eta_s": None if eta is None else round(eta, 1), "ends_by": ends_by, "wall_s": round(w, 3)}
         self.callbacks.progress(info)
         if self.step % 10 == 0 or stage != "training":
             write_json_atomic(self.dir / "progress.json", info)
@@ -157,7 +157,7 @@ class TrainingRun:
         status = "succeeded"
         self.model.train()
         self.emit_progress("training")
-        self._t_log, self._n_rays, self._n_samples = time.perf_counter(), 0, 0
+        self._t_log, self._n_rays, self._n_samples = self.clock.wall(), 0, 0
         try:
             while self.step < self.total:
                 if self.callbacks.stop_requested():
@@ -264,7 +264,7 @@ class TrainingRun:
         self.emit_progress("training")
 
     def _log_train(self, rays, out, losses) -> None:
-        dt = max(time.perf_counter() - self._t_log, 1e-9)
+        dt = max(self.clock.wall() - self._t_log, 1e-9)   # training time: evaluations and checkpoints are not steps
         rec = {"step": self.step, "wall_s": round(self.clock.wall(), 3), "kind": "train"}
         rec.update({k: float(v.detach()) for k, v in losses.items()})
         rec.update({"inv_s": out.inv_s, "lr": self.optimizer.param_groups[0]["lr"], "batch_rays": len(rays),
@@ -273,7 +273,7 @@ class TrainingRun:
                     "specular_on": bool(self.run_state.specular)})
         rec.update(self.adapt.step_stats())
         self.mlog.write(rec)
-        self._t_log, self._n_rays, self._n_samples = time.perf_counter(), 0, 0
+        self._t_log, self._n_rays, self._n_samples = self.clock.wall(), 0, 0
 
     # -- evaluation, checkpoints, report --
     def evaluate(self, final: bool) -> None:
@@ -284,9 +284,11 @@ class TrainingRun:
             w_train = self.clock.wall()   # training time at the start of this evaluation
             self.emit_progress("evaluating")
             with self.ema.applied(self.model) if self.ema is not None else nullcontext():
+                stride = max(self.cfg.train.eval_stride, self.targets.stride or 1)
                 rec = evaluate_test(self.model, self.run_cfg, self.targets, self.device, self.scene.world_from_norm,
-                                    self.cfg.train.eval_stride, with_chamfer=True, shading=self.run_state.shading())
-            rec.update({"kind": "test", "step": self.step, "wall_s": round(w_train, 3), "final": final})
+                                    stride, with_chamfer=True, shading=self.run_state.shading())
+            rec.update({"kind": "test", "step": self.step, "wall_s": round(w_train, 3), "final": final,
+                        "eval_stride": stride})
             for h in self.hooks:
                 h.on_evaluation(self, rec)
             self.mlog.write(rec)
@@ -313,5 +315,7 @@ class TrainingRun:
 
     def _write_report(self, status: str) -> dict:
         rep = self.adapt.report(step=self.step, status=status, nonfinite=self.nonfinite)
+        if self.targets is not None and self.targets.split is not None:
+            rep["split"] = self.targets.split   # which views were held out of training
         write_json_atomic(self.dir / "report.json", rep)
         return rep

@@ -25,6 +25,22 @@ def progress_fraction(step: int, total: int, wall_s: float, time_budget_s: float
     return min(p, 1.0)
 
 
+def run_eta(step: int, total: int, wall_s: float, time_budget_s: float | None) -> tuple[float | None, str]:
+    """``(seconds left, "time" | "steps")``: the end of whichever limit comes first.
+
+    Steps end in ``(total - step) * wall / step`` seconds (the mean step time so far); a budget
+    in ``budget - wall``. This equals ``wall / p - wall`` for the progress ``p`` of
+    :func:`progress_fraction` (its ``max`` picks the nearer end). ``None`` before the first step
+    without a budget (no rate yet)."""
+    by_time = max(time_budget_s - wall_s, 0.0) if time_budget_s else None
+    by_steps = (total - step) * wall_s / step if step > 0 else None
+    if by_steps is not None:
+        by_steps = max(by_steps, 0.0)
+    if by_time is not None and (by_steps is None or by_time <= by_steps):
+        return by_time, "time"
+    return by_steps, "steps"
+
+
 def scheduled_lr_factor(step: int, p: float, total: int, tc, budgeted: bool) -> float:
     """The regular schedule's factor at ``step`` / progress ``p`` (``tc``: the TrainConfig).
 

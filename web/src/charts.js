@@ -154,7 +154,8 @@ export class JobCharts {
     this.error = new Chart(container, {
       id: 'error', title: 'Error against wall-clock time',
       xLabel: 'wall time (s)', yLabel: 'PSNR (dB)', y2Label: 'Chamfer',
-      emptyText: 'No test evaluations yet (they need held-out views, e.g. `nepf fit --eval-test DIR`).',
+      emptyText: 'No test evaluations yet (they need held-out views: the job option "Held-out views", '
+        + 'or `nepf fit --holdout-every N` / `--eval-test DIR`).',
     });
     this.loss = new Chart(container, {
       id: 'loss', title: 'Loss terms (log scale)', xLabel: 'step', yLabel: 'loss', log: true,

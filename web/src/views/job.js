@@ -126,7 +126,14 @@ export function renderJob(root, id) {
     if (ds.format) {
       metaItems.push(['Dataset', `${ds.format}${ds.n_views ? `, ${ds.n_views} views` : ''}${ds.width ? `, ${ds.width}×${ds.height}` : ''}`]);
     }
-    clear(meta).append(...metaItems.flatMap(([k, v]) => [h('dt', {}, k), h('dd', {}, v)]));
+    if (ds.working_width) metaItems.push(['Trains at', `${ds.working_width}×${ds.working_height} px`, 'meta-working-size']);
+    const every = raw.config?.holdout_every;
+    if (typeof every === 'number') {
+      metaItems.push(['Held-out views', every
+        ? `${ds.held_out_views ?? '?'} (views 0, ${every}, ${2 * every}, …), scored during training`
+        : 'none: trains on all views', 'meta-held-out']);
+    }
+    clear(meta).append(...metaItems.flatMap(([k, v, mid]) => [h('dt', {}, k), h('dd', mid ? { id: mid } : {}, v)]));
     if (job.status === 'failed') {
       clear(errorBox).append(h('h2', { class: 'h3' }, 'This job failed'), h('p', { id: 'job-error-message' }, job.error || 'No error message was recorded.'));
       errorBox.hidden = false;

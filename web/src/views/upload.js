@@ -4,6 +4,32 @@ import { zip as fflateZip } from 'fflate';
 import { createJob, validationErrors } from '../api.js';
 import { h, clear, fmtBytes, toast } from '../util.js';
 
+/** Job options and their bounds (the API checks them again: api/job_config.py). */
+export const TEXTURE_SIZES = [256, 512, 1024, 2048];
+export const MAX_FACES_RANGE = [1000, 2000000];
+
+/**
+ * The optional job options from the form's strings; empty means "the server's default".
+ * Returns {options, problems}: problems name the field and the allowed values.
+ */
+export function jobOptions({ holdoutEvery = '', maxImageSide = '', textureSize = '', maxFaces = '' }) {
+  const options = {};
+  const problems = [];
+  const int = (label, text, ok, allowed, key) => {
+    const t = String(text).trim();
+    if (!t) return;
+    const v = Number(t);
+    if (!Number.isInteger(v) || !ok(v)) problems.push({ code: 'invalid_config', file: label, view: null, message: `must be ${allowed} (got ${t})` });
+    else options[key] = v;
+  };
+  int('Held-out views', holdoutEvery, (v) => v === 0 || v >= 2, '0 (train on all views) or an integer ≥ 2', 'holdout_every');
+  int('Working resolution', maxImageSide, (v) => v >= 8, 'an integer ≥ 8 pixels', 'max_image_side');
+  int('Texture size', textureSize, (v) => TEXTURE_SIZES.includes(v), `one of ${TEXTURE_SIZES.join(', ')}`, 'texture_size');
+  int('Mesh faces', maxFaces, (v) => v >= MAX_FACES_RANGE[0] && v <= MAX_FACES_RANGE[1],
+    `an integer from ${MAX_FACES_RANGE[0]} to ${MAX_FACES_RANGE[1]}`, 'max_faces');
+  return { options, problems };
+}
+
 const PRESETS = [
   { value: 'tiny', label: 'tiny — smoke test, a few minutes on a CPU' },
   { value: 'fast', label: 'fast — minutes on a GPU' },
@@ -123,6 +149,21 @@ export function renderUpload(root) {
     id: 'job-name', name: 'name', type: 'text', maxlength: 200, placeholder: 'defaults to the dataset name',
     oninput: () => { nameInput.dataset.auto = '0'; },
   });
+  const holdout = h('input', {
+    id: 'holdout-every', name: 'holdout_every', type: 'number', min: 0, step: 1, inputmode: 'numeric',
+    placeholder: '8 for 16+ views, else 0', 'aria-describedby': 'holdout-help',
+  });
+  const maxSide = h('input', {
+    id: 'max-image-side', name: 'max_image_side', type: 'number', min: 8, step: 1, inputmode: 'numeric',
+    placeholder: 'server default', 'aria-describedby': 'max-side-help',
+  });
+  const textureSize = h('select', { id: 'texture-size', name: 'texture_size' },
+    h('option', { value: '', selected: true }, 'server default'),
+    TEXTURE_SIZES.map((v) => h('option', { value: String(v) }, `${v} × ${v}`)));
+  const maxFaces = h('input', {
+    id: 'max-faces', name: 'max_faces', type: 'number', min: MAX_FACES_RANGE[0], max: MAX_FACES_RANGE[1], step: 1,
+    inputmode: 'numeric', placeholder: 'server default', 'aria-describedby': 'faces-help',
+  });
   const progress = h('progress', { id: 'upload-progress', max: 100, value: 0, hidden: true, 'aria-label': 'Upload progress' });
   const progressText = h('span', { id: 'upload-progress-text', class: 'small muted', 'aria-live': 'polite' });
   const errorsEl = h('div', { id: 'upload-errors', role: 'alert', hidden: true, class: 'errors-box' });
@@ -156,10 +197,11 @@ export function renderUpload(root) {
   }
 
   function showErrors(err) {
-    const list = validationErrors(err.body);
+    const list = err.problems || validationErrors(err.body);
+    const optionsRejected = !!err.problems || err.body?.code === 'invalid_config';
     clear(errorsEl);
-    errorsEl.append(h('h2', { class: 'h3' }, err.status === 422 || err.status === 400 || list.length
-      ? 'The dataset was rejected' : 'Upload failed'));
+    errorsEl.append(h('h2', { class: 'h3' }, optionsRejected ? 'The job options were rejected'
+      : err.status === 422 || err.status === 400 || list.length ? 'The dataset was rejected' : 'Upload failed'));
     errorsEl.append(h('p', {}, list.length > 1 ? `${list.length} problems were found:` : (list.length ? 'Problem found:' : err.message)));
     if (list.length) {
       const byFile = new Map();
@@ -184,6 +226,13 @@ export function renderUpload(root) {
     onsubmit: async (e) => {
       e.preventDefault();
       if (busy) return;
+      const opts = jobOptions({
+        holdoutEvery: holdout.value, maxImageSide: maxSide.value, textureSize: textureSize.value, maxFaces: maxFaces.value,
+      });
+      if (opts.problems.length) {
+        showErrors({ problems: opts.problems, message: 'Check the job options.' });
+        return;
+      }
       if (!dataset) {
         chosen.textContent = 'Choose a zip or drop a folder first.';
         drop.focus();
@@ -195,7 +244,7 @@ export function renderUpload(root) {
       progress.hidden = false;
       progress.value = 0;
       const minutes = Number(budget.value);
-      const config = { preset: preset.value };
+      const config = { preset: preset.value, ...opts.options };
       if (nameInput.value.trim()) config.name = nameInput.value.trim().slice(0, 200);
       if (minutes > 0) config.time_budget_s = Math.round(minutes * 60);
       try {
@@ -234,6 +283,19 @@ export function renderUpload(root) {
       h('div', { class: 'field' }, h('label', { for: 'preset' }, 'Preset'), preset),
       h('div', { class: 'field' }, h('label', { for: 'budget' }, 'Time budget (minutes)'), budget,
         h('span', { id: 'budget-help', class: 'small muted' }, '0 = no limit; the schedule is compressed to fit.')))),
+  h('fieldset', {},
+    h('legend', {}, 'Options (empty: the default)'),
+    h('div', { class: 'row wrap' },
+      h('div', { class: 'field' }, h('label', { for: 'holdout-every' }, 'Held-out views: every N-th'), holdout,
+        h('span', { id: 'holdout-help', class: 'small muted' },
+          'Views 0, N, 2N, … are kept out of training and scored as it runs (the error-against-time chart); '
+          + 'they cost that many training views. 0 = train on all; at most half the view count.')),
+      h('div', { class: 'field' }, h('label', { for: 'max-image-side' }, 'Working resolution (px, long side)'), maxSide,
+        h('span', { id: 'max-side-help', class: 'small muted' },
+          'Larger images are resampled down to this at load; up to the server\'s ceiling. Smaller trains faster.')),
+      h('div', { class: 'field' }, h('label', { for: 'texture-size' }, 'Texture size'), textureSize),
+      h('div', { class: 'field' }, h('label', { for: 'max-faces' }, 'Mesh faces (at most)'), maxFaces,
+        h('span', { id: 'faces-help', class: 'small muted' }, `${MAX_FACES_RANGE[0]} to ${MAX_FACES_RANGE[1]}.`)))),
   h('div', { class: 'actions' }, submit, progress, progressText),
   errorsEl);
 

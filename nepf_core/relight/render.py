@@ -1,0 +1,102 @@
+"""Render views of a recovered asset under point lights (``nepf relight``), instead of the learned
+photon field.
+
+Per pixel: find the surface, take its normal and material, and shade it under each light with
+shadows traced through the SDF (:mod:`.shade`, :mod:`.tracing`). Two ways to find the surface:
+
+* :func:`model_surfaces`, for a trained model: the renderer's own surface (the NeuS weights'
+  max-weight sample, its normal and material, as ``nepf render`` shades the ``pbr`` channel), with
+  coverage ``alpha = sum_i w_i``. The relit colour is ``alpha L``, on black.
+* :func:`query_surfaces`, for any FieldQuery (export previews, analytic test scenes): sphere
+  tracing (:func:`.tracing.trace_primary`), coverage 0 or 1.
+
+Everything is in the normalised frame: lights are mapped there with
+:func:`.lights.lights_to_normalised`, which keeps the irradiance of the world frame.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from nepf_core.rays import PixelSampler, RayBatch
+from nepf_core.relight.shade import ShadeOptions, SurfaceSamples, shade_under_lights
+from nepf_core.relight.tracing import SdfFn, TraceConfig, light_visibility, trace_primary
+
+SurfaceFn = Callable[[RayBatch], tuple[SurfaceSamples, Tensor]]
+"""``rays -> (surface samples of every ray, coverage alpha [R] in [0, 1])``."""
+
+
+def model_surfaces(model, render_cfg, shading) -> SurfaceFn:
+    """The renderer's surface of a trained model (see the module docstring). ``shading``: the
+    run's :class:`~nepf_core.render.renderer.Shading`; with the lobe dropped the material is the
+    one the run shades with (:func:`nepf_core.bsdf.diffuse_only_material`)."""
+    from nepf_core.bsdf import diffuse_only_material
+    from nepf_core.render.renderer import render_rays
+
+    def surfaces(rays: RayBatch) -> tuple[SurfaceSamples, Tensor]:
+        out = render_rays(model, rays, render_cfg, train=False, shading=shading)
+        s = {k: v.detach() for k, v in out.surf.items()}
+        albedo, metal = s["albedo"], s["metallic"]
+        if not shading.specular:
+            albedo, metal = diffuse_only_material(albedo, metal, shading.diffuse_metal_weight)
+        return (SurfaceSamples(s["x"], s["normal"], rays.directions, albedo, s["roughness"], metal),
+                out.weight_sum.detach().clamp(0.0, 1.0))
+    return surfaces
+
+
+def query_surfaces(query, trace: TraceConfig) -> SurfaceFn:
+    """Sphere-traced surface of a FieldQuery (``sdf``, ``normal``, ``material``); misses get
+    alpha 0 (and harmless placeholder samples)."""
+    def surfaces(rays: RayBatch) -> tuple[SurfaceSamples, Tensor]:
+        hit, x = trace_primary(query.sdf, rays.origins, rays.directions, trace)
+        n = torch.zeros_like(x)
+        n[:, 2] = 1.0
+        albedo, rough, metal = torch.zeros_like(x), x.new_ones(x.shape[0]), x.new_zeros(x.shape[0])
+        if hit.any():
+            n[hit] = query.normal(x[hit]).to(x.dtype)
+            a, r, m = query.material(x[hit], n[hit])
+            albedo[hit], rough[hit], metal[hit] = a.to(x.dtype), r.reshape(-1).to(x.dtype), m.reshape(-1).to(x.dtype)
+        return SurfaceSamples(x, n, rays.directions, albedo, rough, metal), hit.to(x.dtype)
+    return surfaces
+
+
+def relight_views(surfaces: SurfaceFn, sdf: SdfFn, sampler: PixelSampler, positions: np.ndarray,
+                  intensities: np.ndarray, opts: ShadeOptions, *, trace: TraceConfig | None = None,
+                  shadows: bool = True, chunk: int = 4096) -> tuple[np.ndarray, np.ndarray]:
+    """Every view of ``sampler`` under ``K`` point lights (normalised frame: ``positions [K, 3]``,
+    ``intensities [K, 3]``). Returns ``rgb [K, V, H, W, 3]`` float32 linear radiance composited
+    on black (``alpha * L``, so 0 where nothing is covered) and ``alpha [V, H, W]`` float32."""
+    trace = trace or TraceConfig()
+    dev = sampler.device
+    P = torch.as_tensor(positions, dtype=torch.float32, device=dev)
+    I = torch.as_tensor(intensities, dtype=torch.float32, device=dev)
+
+    def visibility(x: Tensor, n: Tensor, p: Tensor) -> Tensor:
+        return light_visibility(sdf, x, n, p, trace)
+
+    K, V, H, W = P.shape[0], sampler.n_views, sampler.height, sampler.width
+    rgb = np.zeros((K, V, H, W, 3), np.float32)
+    alpha = np.zeros((V, H, W), np.float32)
+    for v in range(V):
+        rays = sampler.view_rays(v)
+        cols, alphas = [], []
+        for a in range(0, len(rays), chunk):
+            rb = rays.slice(a, a + chunk)
+            s, cov = surfaces(rb)
+            L = torch.zeros(K, len(rb), 3, device=dev)
+            keep = cov > 0
+            if keep.any():
+                sub = SurfaceSamples(*(t[keep] for t in (s.x, s.normal, s.view_dir, s.albedo, s.roughness,
+                                                          s.metallic)))
+                with torch.no_grad():
+                    L[:, keep] = shade_under_lights(sub, P, I, opts, visibility if shadows else None) \
+                        * cov[keep][None, :, None]
+            cols.append(L.detach().cpu())
+            alphas.append(cov.detach().cpu())
+        rgb[:, v] = torch.cat(cols, 1).reshape(K, H, W, 3).numpy()
+        alpha[v] = torch.cat(alphas).reshape(H, W).numpy()
+    return rgb, alpha
