@@ -94,7 +94,7 @@ def _fit_real(spec: dict, run: Path, overrides: dict, callbacks=None) -> dict:
     from nepf_core.train import fit, load_model
     from nepf_core.jobs import build_config, held_out_targets
 
-    full = load_scene(spec["data_dir"], downscale=int(spec.get("downscale", 1)))
+    full = load_scene(spec["data_dir"], downscale=int(spec.get("downscale", 1)), max_side=int(spec.get("max_side", 0)))
     train, targets, split = held_out_targets(full, int(spec["holdout_every"]), has_test_set=False)
     cfg = build_config(spec["preset"], None, overrides)
     res = fit(train, run, cfg, device="cpu", callbacks=callbacks, resume=False, time_budget_s=spec["budget_s"],
@@ -102,7 +102,7 @@ def _fit_real(spec: dict, run: Path, overrides: dict, callbacks=None) -> dict:
     summary = {"status": res.status, "step": res.step, "total": res.total, "wall_s": res.wall_s,
                "manifest": None, "report": res.report, "last_test": res.last_test,
                "nonfinite_steps": res.nonfinite_steps,
-               "split": {**split, "downscale": int(spec.get("downscale", 1)),
+               "split": {**split, "downscale": int(spec.get("downscale", 1)), "max_side": int(spec.get("max_side", 0)),
                          "resolution": [full.width, full.height]}}
     (run / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     t0 = time.perf_counter()
@@ -286,6 +286,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="comma-separated real datasets (a name under --datasets-root, or a path), e.g. dtu_scan24")
     p.add_argument("--datasets-root", default=DEFAULT_DATASETS_ROOT)
     p.add_argument("--downscale", type=int, default=4, help="real data: integer downscale (default 4)")
+    p.add_argument("--max-side", type=int, default=0,
+                   help="real data: working resolution, longest image side in pixels (exact area resampling, any "
+                        "factor; use with --downscale 1; 0: off)")
     p.add_argument("--holdout-every", type=int, default=8,
                    help="real data: views 0, K, 2K, ... are held out for testing (default 8)")
     p.add_argument("--configs", default="fast,paper", help="comma-separated presets (paper, fast, tiny)")
@@ -352,7 +355,8 @@ def plan_runs(args) -> list[dict]:
         if not d.is_dir():
             raise SystemExit(f"dataset {name!r}: {d} not found")
         targets.append({"mode": "real", "scene": d.name, "data_dir": str(d.resolve()), "gt_mesh": None,
-                        "gt_albedo": None, "downscale": args.downscale, "holdout_every": args.holdout_every,
+                        "gt_albedo": None, "downscale": args.downscale, "max_side": args.max_side,
+                        "holdout_every": args.holdout_every,
                         "mesh_resolution": args.mesh_resolution})
     if not targets:
         raise SystemExit("nothing to run: give --scenes and/or --dataset")

@@ -88,6 +88,17 @@ def procs(tmp_path):
     p.cleanup()
 
 
+def _db_statuses(data: Path, job_ids: list[str]) -> list[str]:
+    """The jobs' statuses in one read of the SQLite store (a consistent snapshot)."""
+    con = sqlite3.connect(f"file:{data / 'nepf.sqlite3'}?mode=ro", uri=True, timeout=30)
+    try:
+        rows = dict(con.execute(f"SELECT id, status FROM nepf_jobs WHERE id IN ({','.join('?' * len(job_ids))})",
+                                job_ids).fetchall())
+    finally:
+        con.close()
+    return [rows.get(j) for j in job_ids]
+
+
 def _db_job(data: Path, job_id: str) -> dict:
     """The job's row, read from the SQLite store directly (the API may be down)."""
     con = sqlite3.connect(f"file:{data / 'nepf.sqlite3'}?mode=ro", uri=True, timeout=30)
@@ -243,11 +254,13 @@ def test_a_second_worker_on_the_data_dir_waits_for_the_lock_then_takes_over(proc
     overlaps = []
 
     def first_done_second_running():
-        jobs = [get_job(base, h, j) for j in ids]
-        if sum(j["status"] == "running" for j in jobs) > 1:
-            overlaps.append([(j["id"], j["status"], j["progress"]["step"]) for j in jobs])
-        return jobs[0]["status"] == "succeeded" and jobs[1]["status"] == "running" \
-            and jobs[1]["progress"]["step"] >= 3
+        # one SELECT for both rows: two GETs could straddle job 1 finishing and job 2 being
+        # claimed by the same worker, and read both as running
+        statuses = _db_statuses(data, ids)
+        if sum(s == "running" for s in statuses) > 1:
+            overlaps.append(list(zip(ids, statuses)))
+        return statuses[0] == "succeeded" and statuses[1] == "running" \
+            and get_job(base, h, ids[1])["progress"]["step"] >= 3
     wait_for(first_done_second_running, 60, 0.05, what="job 1 done and job 2 running")
     assert not overlaps, overlaps                    # never two jobs running at once
     leases = {e["worker"].rsplit(":", 1)[1] for j in ids for e in get_job(base, h, j)["delivery"]["attempt_log"]}

@@ -66,7 +66,7 @@ def test_refined_surface_point_lies_on_the_surface_whatever_the_sampling(inv_s):
     s = coarse.surf
     ref = bsdf.shade(s["normal"], s["light_dir"], -rays.directions, s["albedo"], s["roughness"][:, None],
                      s["metallic"][:, None], s["intensity"][:, None], lambertian=cfg.render.lambertian,
-                     specular=True)
+                     specular=True, kind=cfg.render.bsdf_kind)
     assert torch.allclose(coarse.rgb_surf, ref, atol=1e-6)
     # the volume colours do not change: only L_surf moves
     assert torch.allclose(coarse.rgb_vol, plain.rgb_vol) and torch.allclose(coarse.rgb_r, plain.rgb_r)

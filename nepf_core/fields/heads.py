@@ -37,10 +37,6 @@ class HeadConfig:
     """Read the SDF feature vector (paper: yes). The fast preset's photon network sets this
     False so the light field is a smooth function of (x, n) and cannot copy surface texture
     into the intensity (texture then has to go to the albedo)."""
-    roughness_min: float = 0.0
-    """Material head only: ``r = r_min + (1 - r_min) sigmoid(z)``. A lobe narrower than the
-    training views can sample is invisible, and metallic then only darkens the diffuse
-    ``(1 - m) f_d``: a floor keeps a metal's lobe visible, so darkening by metallic costs error."""
 
 
 class RadianceField(nn.Module):
@@ -117,8 +113,7 @@ class MaterialField(nn.Module):
 
     def forward(self, x: Tensor, n: Tensor, feature: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         out = torch.sigmoid(self.mlp(torch.cat([positional_encoding(x, self.cfg.n_freqs_x), n, feature], dim=-1)))
-        r_min = self.cfg.roughness_min
-        return out[..., :3], r_min + (1.0 - r_min) * out[..., 3], out[..., 4]
+        return out[..., :3], out[..., 3], out[..., 4]
 
 
 class BackgroundField(nn.Module):
