@@ -153,7 +153,8 @@ def test_variants_build_their_baselines():
 def test_pairs_match_by_seed_and_tail_means(tmp_path):
     """Runs merged from one-repeat benchmarks (seed set by --override) pair by seed, whatever
     the merge order; the tail mean is over the last 10 % of the training time."""
-    from bench.report import summarize, tail_mean, write_table
+    from bench.curves import tail_mean
+    from bench.report import summarize, write_table
     a1 = _rec("s", "fast", "adaptive", [(100, 20.0), (800, 24.0), (900, 26.0), (1000, 25.0)],
               overrides={"train.seed": 1})
     a0 = _rec("s", "fast", "adaptive", [(100, 22.0), (200, 23.0)], overrides={"train.seed": 0})
@@ -188,7 +189,8 @@ def test_smoothed_pair_comparison_uses_running_means_of_three(tmp_path):
     all_on 22.333, 23.667, 24.767. Smoothed finals 24.0 / 24.767 -> target 24.0: adaptive first
     at 400 s, all_on at 500 s (20 % saved); within 0.3 dB of 24.767 (24.467): adaptive never,
     all_on at 500 s."""
-    from bench.report import smoothed_curve, summarize, time_to_reach_smoothed, write_table
+    from bench.curves import smoothed_curve, time_to_reach_smoothed
+    from bench.report import summarize, write_table
     a = _rec("s", "fast", "adaptive", [(100, 20.0), (200, 26.0), (300, 23.0), (400, 24.0), (500, 25.0)])
     b = _rec("s", "fast", "all_on", [(100, 21.0), (200, 22.0), (300, 24.0), (400, 25.0), (500, 25.3)])
     sa = smoothed_curve(a)
@@ -216,7 +218,7 @@ def test_level_savings_at_every_shared_whole_db_level_up_to_the_lower_final():
     adaptive: 30, 31, 32, 36, 39, 33 (a dip), 40, 41 (smoothed 31 @90, 33 @120, 35.667 @150,
     36 @180, 37.333 @210, 38 @240). Levels from floor(34.333) + 1 = 35 dB to the lower final 37:
     35 -> 150 / 120 s (-25 %), 36 -> 180 / 120 s (-50 %), 37 -> 210 / 150 s (-40 %)."""
-    from bench.report import level_savings
+    from bench.curves import level_savings
     b = _rec("s", "fast", "all_on", [(30 * k, v) for k, v in enumerate((30, 36, 37, 37, 37, 37), 1)])
     a = _rec("s", "fast", "adaptive", [(30 * k, v) for k, v in enumerate((30, 31, 32, 36, 39, 33, 40, 41), 1)])
     lv = level_savings(a, b)
