@@ -412,6 +412,61 @@ def test_job_page_charts_3d_channels_light_lightfield_download(browser, backend,
     con.assert_clean()
 
 
+def test_relit_previews_beside_the_viewer_set_its_light_and_camera(browser, backend, finished_job, shots):
+    """The export's three canonical relit previews show beside the 3D view (images decoded,
+    azimuth labels from the record), and "Use this light" puts the viewer's light at the preview
+    light's world position (the viewer's frame: the GLB has no root transform), with its
+    intensity, and the camera at the preview camera."""
+    job_id = finished_job["id"]
+    with backend.client() as c:
+        rec = c.get(f"/jobs/{job_id}/artifacts/previews/relit_canonical.json").json()
+        manifest = c.get(f"/jobs/{job_id}/artifacts/manifest.json").json()
+    assert manifest["relit_previews"] == rec
+    assert len(rec["images"]) == len(rec["lights"]) == 3
+    page, con = new_page(browser, backend)
+    open_job(page, backend, job_id)
+    strip = page.locator('#relit-previews[data-state="loaded"]')
+    strip.wait_for()
+    figs = page.locator("#relit-previews figure.relit-preview")
+    assert figs.count() == 3
+    page.wait_for_function("() => [...document.querySelectorAll('#relit-previews img')]"
+                           ".every(i => i.complete && i.naturalWidth > 0)")
+    sizes = page.locator("#relit-previews img").evaluate_all("ims => ims.map(i => [i.naturalWidth, i.naturalHeight])")
+    assert sizes == [[rec["camera"]["width"], rec["camera"]["height"]]] * 3
+    for k, az in enumerate(rec["canonical"]["azimuths_deg"]):
+        assert float(figs.nth(k).get_attribute("data-azimuth")) == az
+        assert f"azimuth {round(az)}°" in figs.nth(k).locator("figcaption").inner_text()
+        light_attr = [float(v) for v in figs.nth(k).get_attribute("data-light-world").split()]
+        np.testing.assert_allclose(light_attr, rec["lights"][k]["position_world"], rtol=0, atol=1e-12)
+
+    scale = float(rec["canonical"]["radius_world"])
+    for k in (1, 2):
+        before = viewer_state(page)
+        f0 = before["frame"]
+        page.locator(f'[data-relit-apply="{k}"]').click()
+        wait_frame_after(page, f0)
+        assert strip.get_attribute("data-applied") == str(k)
+        d = page.locator("#viewer-canvas").evaluate("el => ({...el.dataset})")
+        light = rec["lights"][k]
+        np.testing.assert_allclose([float(v) for v in d["lightPosition"].split()], light["position_world"],
+                                   rtol=0, atol=1e-5 * scale)
+        assert float(d["lightIntensity"]) == pytest.approx(float(np.mean(light["intensity_rgb"])), rel=1e-6)
+        np.testing.assert_allclose([float(v) for v in d["cameraPosition"].split()], rec["camera"]["position_world"],
+                                   rtol=0, atol=1e-5 * scale)
+        assert d["env"] == "none" and page.locator("#env-preset").input_value() == "none"
+    # the sliders show the applied light: azimuth 240 deg about +Z is -120 deg on the (-180, 180] slider
+    assert float(page.locator("#light-lightAz").input_value()) == pytest.approx(-120, abs=1)
+    assert float(page.locator("#light-lightEl").input_value()) == pytest.approx(rec["canonical"]["elevation_deg"], abs=1)
+    img = png_stats(canvas_png(page))
+    h, w, _ = img.shape
+    centre = img[int(h * 0.4):int(h * 0.6), int(w * 0.4):int(w * 0.6)]
+    assert (np.abs(centre - BACKGROUND).max(-1) > 0.04).mean() > 0.5, "the asset is not in view from the preview camera"
+    page.screenshot(path=str(shots / "relit-previews.png"), full_page=True)
+    assert_labelled(page)
+    page.context.close()
+    con.assert_clean()
+
+
 def test_phone_layout_is_readable(browser, backend, finished_job, shots):
     page, con = new_page(browser, backend, viewport=(390, 844))
     page.goto(backend.base + "/#/jobs")

@@ -371,6 +371,61 @@ export class AssetViewer {
   setLightsFromJson(js) {
     const l = js && js.__parsed ? js.__parsed : parseLights(js);
     if (!l) return;
+    this.placeLight(l);
+    this.lightsJson = l;
+    this.applyLight();
+    this.onChange?.();
+  }
+
+  /**
+   * Put the interactive light at a world position with a radiant intensity: one entry of
+   * `previews/relit_canonical.json` (`position_world`, `intensity_rgb`; nepf_core/relight/previews.py).
+   * The GLB is in the input's world frame with no root transform, so the viewer's frame is that
+   * frame and the position converts to the sliders' azimuth / elevation / distance about the
+   * asset's centre exactly as lights.json does (placeLight); the light's colour is
+   * `intensity_rgb / mean(intensity_rgb)` and its intensity the mean. Not the "Reset light" target.
+   */
+  setLightWorld(positionWorld, intensityRgb) {
+    const position = vec3(positionWorld);
+    if (!position) return false;
+    const rgb = (Array.isArray(intensityRgb) ? intensityRgb : [1, 1, 1]).slice(0, 3).map(Number);
+    const mean = rgb.every(Number.isFinite) ? (rgb[0] + rgb[1] + rgb[2]) / 3 : 0;
+    this.placeLight({ position, intensity: mean > 0 ? mean : null, color: mean > 0 ? rgb.map((c) => c / mean) : null });
+    this.applyLight();
+    this.onChange?.();
+    return true;
+  }
+
+  /**
+   * Look through a camera given in the world frame (`position_world`, `target_world`, `up`,
+   * `fov_y_deg`: the `camera` of relit_canonical.json). A camera `up` that is one of UP_AXES
+   * becomes the viewer's up axis first, so the orbit controls keep the same roll.
+   */
+  setCameraWorld(cam) {
+    const pos = vec3(cam?.position_world);
+    const target = vec3(cam?.target_world);
+    if (!pos || !target) return false;
+    const up = vec3(cam.up);
+    if (up) {
+      up.normalize();
+      const key = Object.keys(UP_AXES).find((k) => UP_AXES[k].up.distanceTo(up) < 1e-6);
+      if (key && key !== this.state.up) this.setUp(key);
+    }
+    const fov = Number(cam.fov_y_deg);
+    if (Number.isFinite(fov) && fov > 1 && fov < 179) this.camera.fov = fov;
+    const dist = pos.distanceTo(target);
+    this.camera.position.copy(pos);
+    this.camera.near = Math.max(dist / 1000, 1e-4);
+    this.camera.far = Math.max(dist * 100, this.camera.far);
+    this.camera.updateProjectionMatrix();
+    this.controls.target.copy(target);
+    this.controls.update();
+    this.requestRender();
+    return true;
+  }
+
+  /** Slider state and base intensity from a parsed light ({position?, direction?, intensity?, atPoint?, color?}). */
+  placeLight(l) {
     let dir = null;
     let dist = null;
     if (l.position) {
@@ -399,9 +454,8 @@ export class AssetViewer {
       this.baseLightIntensity = l.atPoint * d * d;
     }
     this.state.lightIntensity = 1;
-    this.lightsJson = l;
-    this.applyLight();
-    this.onChange?.();
+    if (l.color) this.light.color.setRGB(l.color[0], l.color[1], l.color[2], THREE.LinearSRGBColorSpace);
+    else this.light.color.setRGB(1, 1, 1);
   }
 
   /** Azimuth / elevation (degrees) of a unit direction in the current up frame. */
@@ -783,7 +837,8 @@ export class AssetViewer {
    * What the frame just drawn shows, as data-* attributes of the canvas (read by the browser
    * tests and by anyone inspecting the page): `data-state` (loading | loaded), `data-frame`
    * (frames drawn so far), `data-channel`, `data-wireframe`, `data-glyphs` (light-field arrows
-   * drawn), `data-light-position` ("x y z", world), `data-gizmo-x` / `data-gizmo-y` (the light
+   * drawn), `data-light-position` ("x y z", world), `data-light-intensity` (three.js' radiant
+   * intensity), `data-camera-position` ("x y z", world), `data-env`, `data-gizmo-x` / `data-gizmo-y` (the light
    * gizmo's position in CSS px from the canvas's top-left corner).
    */
   describeFrame() {
@@ -796,6 +851,9 @@ export class AssetViewer {
     d.wireframe = String(this.state.wireframe);
     d.glyphs = String(this.glyphCount());
     d.lightPosition = [p.x, p.y, p.z].join(' ');
+    d.lightIntensity = String(this.light.intensity);
+    d.cameraPosition = this.camera.position.toArray().join(' ');
+    d.env = this.state.env;
     d.gizmoX = g.x.toFixed(1);
     d.gizmoY = g.y.toFixed(1);
   }

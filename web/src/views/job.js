@@ -6,6 +6,7 @@ import { JobCharts } from '../charts.js';
 import { AssetViewer, CHANNELS, ENVIRONMENTS, COLORMAP_CSS, UP_AXES } from '../viewer3d.js';
 import { h, clear, fmtBytes, fmtDuration, fmtTime, isFinal, metricsToCsv, slider, toast } from '../util.js';
 import { progressBar, statusBadge } from './jobs.js';
+import { loadRelitPreviews } from './relit.js';
 
 /** Download a Response body under `name` (blob URL + <a download>). */
 async function saveResponse(res, name) {
@@ -85,6 +86,7 @@ export function renderJob(root, id) {
   const viewerHost = h('div', { class: 'viewer-host', id: 'viewer' });
   const viewerMsg = h('p', { class: 'viewer-msg muted', id: 'viewer-msg' }, 'The 3D asset appears when the export has run.');
   const controls = h('div', { class: 'viewer-controls', id: 'viewer-controls', hidden: true });
+  const relitStrip = h('section', { class: 'relit-strip', id: 'relit-previews', 'aria-labelledby': 'relit-title', hidden: true, dataset: { state: 'none', applied: '' } });
   const downloads = h('div', { id: 'downloads', class: 'downloads' }, h('p', { class: 'muted' }, 'Downloads appear when the export has run.'));
 
   root.append(h('section', { class: 'page job-page', 'aria-labelledby': 'job-title' },
@@ -100,7 +102,7 @@ export function renderJob(root, id) {
     h('section', { class: 'panel', 'aria-labelledby': 'asset-title' },
       h('h2', { id: 'asset-title' }, 'Recovered asset'),
       h('div', { class: 'viewer-layout' },
-        h('div', { class: 'viewer-frame' }, viewerHost, viewerMsg),
+        h('div', { class: 'viewer-column' }, h('div', { class: 'viewer-frame' }, viewerHost, viewerMsg), relitStrip),
         controls)),
     h('section', { class: 'panel', 'aria-labelledby': 'downloads-title' },
       h('h2', { id: 'downloads-title' }, 'Downloads'),
@@ -214,6 +216,9 @@ export function renderJob(root, id) {
       }
       await Promise.all(extras);
       buildControls();
+      if (has('previews/relit_canonical.json')) {
+        loadRelitPreviews(relitStrip, id, { viewer, isStopped: () => stopped, onApplied: afterRelitApplied });
+      }
       if (has('light_field.json')) {
         api.artifactJson(id, 'light_field.json').then((js) => {
           if (stopped) return;
@@ -423,6 +428,15 @@ export function renderJob(root, id) {
     } else {
       status.textContent = 'No light field in the results.';
     }
+  }
+
+  /** After a relit preview was put on the viewer: the selects and sliders show its state. */
+  function afterRelitApplied() {
+    const env = controls.querySelector('#env-preset');
+    if (env) env.value = viewer.state.env;
+    const up = controls.querySelector('#up-axis');
+    if (up) up.value = viewer.state.up;
+    syncControls();
   }
 
   function syncControls() {
