@@ -428,3 +428,18 @@ def max_metric_step(data_dir: Path, job_id: str) -> int:
         except ValueError:   # a line cut by the kill (JSONDecodeError is a ValueError)
             continue
     return max(steps) if steps else 0
+
+
+def new_job(settings, Session, **values) -> str:
+    """A job row (owner "w", preset tiny, 20 steps unless ``values`` say otherwise) with a small DTU
+    dataset in its folder, written straight to the store (no API)."""
+    from jobstore.models import Job
+
+    values = {"config": {"preset": "tiny", "iters": 20}, **values}
+    job = Job(owner="w", queue="default", attempt_log=[], **values)
+    with Session() as s:
+        s.add(job)
+        s.commit()
+        jid = job.id
+    make_dtu_dir(settings.jobs_path / jid / "dataset", n=3, size=8)
+    return jid

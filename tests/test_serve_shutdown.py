@@ -24,8 +24,8 @@ from pathlib import Path
 
 import pytest
 
-from service_fixtures import (Proc, dataset_zip_bytes, get_job, local_token, service_env, start_api, start_worker,
-                              upload, wait_for, wait_status)
+from service_fixtures import (Proc, dataset_zip_bytes, get_job, local_token, new_job, service_env, start_api,
+                              start_worker, upload, wait_for, wait_status)
 
 STEP_S = 0.1
 ENV = dict(NEPF_PIPELINE="service_fixtures:fake_pipeline", NEPF_FAKE_STEP_S=str(STEP_S), NEPF_LEASE_S="3",
@@ -287,19 +287,6 @@ def store(tmp_path, monkeypatch):
     dispose_engines()
 
 
-def _new_job(settings, Session, iters: int) -> str:
-    from jobstore.models import Job
-    from service_fixtures import make_dtu_dir
-
-    job = Job(owner="w", queue="default", attempt_log=[], config={"preset": "tiny", "iters": iters})
-    with Session() as s:
-        s.add(job)
-        s.commit()
-        jid = job.id
-    make_dtu_dir(settings.jobs_path / jid / "dataset", n=3, size=8)
-    return jid
-
-
 def _run_until_shutdown(settings, Session, jid, pipeline, stop_at_step: int = 7):
     """Run the job in a thread and set the worker's shutdown flag once it reached ``stop_at_step``."""
     import threading
@@ -325,7 +312,7 @@ def test_runner_requeues_a_job_stopped_by_the_worker_shutdown_and_the_next_worke
     from worker.runner import JobRunner
 
     settings, Session = store
-    jid = _new_job(settings, Session, iters=30)
+    jid = new_job(settings, Session, config={"preset": "tiny", "iters": 30})
     assert _run_until_shutdown(settings, Session, jid, fake_pipeline) == "requeued"
     with Session() as s:
         j = s.get(Job, jid)
@@ -345,7 +332,7 @@ def test_runner_requeues_before_the_export_when_a_shutdown_stopped_training(stor
     """A pipeline like ``run_job``: after a stop it reports stage "exporting" and exports; on a
     shutdown the runner leaves there (the next worker exports), and the job is re-queued."""
     settings, Session = store
-    jid = _new_job(settings, Session, iters=10_000)
+    jid = new_job(settings, Session, config={"preset": "tiny", "iters": 10_000})
     exported = []
 
     def pipeline(request):
@@ -365,7 +352,7 @@ def test_an_exception_during_a_shutdown_requeues_otherwise_fails(store, shutting
     """Celery's cold shutdown (SIGQUIT) raises "TaskPool does not implement kill_job" into the task:
     the job was interrupted, not failed. The same error outside a shutdown still fails the job."""
     settings, Session = store
-    jid = _new_job(settings, Session, iters=100)
+    jid = new_job(settings, Session, config={"preset": "tiny", "iters": 100})
 
     def pipeline(request):
         for step in range(1, 101):

@@ -16,7 +16,7 @@ from jobstore.models import Job, utcnow
 from jobstore.reconcile import reconcile_once
 from nepf_core.data.errors import DatasetError
 from nepf_core.pipeline import JobRequest, load_pipeline
-from service_fixtures import fake_pipeline, make_dtu_dir, pg_database
+from service_fixtures import fake_pipeline, new_job, pg_database
 from worker.runner import JobRunner
 
 
@@ -35,17 +35,6 @@ def store(request, tmp_path, monkeypatch):
     dispose_engines()
     if drop:
         drop()
-
-
-def new_job(settings, Session, **values) -> str:
-    values = {"config": {"preset": "tiny", "iters": 20}, **values}
-    job = Job(owner="w", queue="default", attempt_log=[], **values)
-    with Session() as s:
-        s.add(job)
-        s.commit()
-        jid = job.id
-    make_dtu_dir(settings.jobs_path / jid / "dataset", n=3, size=8)
-    return jid
 
 
 def get(Session, jid) -> Job:
