@@ -56,7 +56,7 @@ def render_view(model, sampler: PixelSampler, k: int, cfg: RenderConfig, *, stri
             alpha = out.weight_sum.clamp(0, 1)[:, None]
             pbr = out.rgb_surf * alpha
             if getattr(model, "background", None) is not None:
-                pbr = pbr + (1 - alpha) * model.background(rb.directions)
+                pbr = pbr + (1 - alpha) * model.background(rb.origins, rb.directions)
             s = out.surf
             albedo, metal = s["albedo"], s["metallic"]
             if not shading.specular:  # lobe dropped: shaded as a dielectric diffuse (metallic 0)

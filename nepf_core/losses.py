@@ -12,8 +12,13 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_asm   = w_albedo_smooth * mean | c(x*) - c(x* + eps) |   (albedo smoothness prior, off in paper)
     L_flat  = w_albedo_flat * mean_lit | Y(c) / sg(mean_lit Y(c)) - 1 |, Y = channel mean   (lobe off only)
     L_mask  = w_mask * BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)
+    L_range = w_material_range * mean_surf mean_k relu(|z_k| - z_max)   (z: material logits; off in paper)
+    L_unseen = w_metallic_unseen * mean_lit m (1 - s)   (s: the lobe's share of L_surf, stop-grad; off in paper)
+    L_bg    = w_r * mean_{mask = 0} | srgb(L_r) - srgb(L_gt) |   (masks and a background model)
 
-With masks, colour terms average over foreground rays only (NeuS); ``L_surf`` and
+With masks, colour terms average over foreground rays only (NeuS); with masks and a background
+volume (``background``), ``L_bg`` trains the colour of the rays outside the masks, averaged
+over those rays alone, so that the foreground terms keep their scale; ``L_surf`` and
 ``L_light`` always use only rays that hit a surface (mask, or ``sum w > 0.5`` without).
 """
 
@@ -65,6 +70,23 @@ class LossConfig:
     the colour terms' gradient on the albedo is larger, and that gradient carries the shading
     ``I (n.l) / pi`` and the sRGB slope: the weight must stay well under ``lambda2_vol`` times
     that slope, or the texture moves into the light (docs/FAST.md, "What fixed it")."""
+    w_material_range: float = 0.0
+    """Keep the material network's raw outputs (albedo, roughness, metallic logits ``z``) within
+    ``|z| <= material_logit_max``: ``mean relu(|z| - z_max)`` over surface rays. A sigmoid past
+    ``|z| ~ 5`` passes almost no gradient (``sigma' < 0.007``), and for roughness ``d alpha / d r =
+    2 r`` vanishes at 0 as well, so a material channel that saturates early stays there whatever
+    the images say later: spot_textured's roughness sat at exactly 0 and torus_glossy's at 1 and
+    its blue albedo at 1 (docs/FAST.md, "Materials: saturation and the unseen lobe")."""
+    material_logit_max: float = 3.0
+    """``z_max`` of ``w_material_range``: sigmoid(3) = 0.953, so every channel keeps a slope of at
+    least 0.045; roughness >= 0.047 still gives a near-mirror glTF lobe (alpha = 3e-3)."""
+    w_metallic_unseen: float = 0.0
+    """Metallic only where its lobe is seen: ``mean_lit m (1 - s)`` with ``s`` the specular lobe's
+    share of the shaded surface colour (stop-grad, ``surf["specular"]``), over lit surface rays.
+    A metal whose lobe the views never see (roughness near 0, so the highlight is a point that no
+    pixel catches) only darkens its diffuse by ``(1 - m)``, which the albedo can do as well; the
+    images cannot tell the two apart, and without a prior the texture goes into metallic. Where
+    the lobe carries the colour (a real metal: ``s ~ 1``) the term vanishes."""
     w_mask: float = 0.1
     """Mask BCE weight (NeuS's value); only applied when the scene has masks."""
     color_space: str = "srgb"
@@ -116,9 +138,11 @@ def mask_bce(weight_sum: Tensor, mask: Tensor, ray_weight: Tensor | None = None)
     return weighted_mean(bce, ray_weight)
 
 
-def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, specular: bool = True) -> dict[str, Tensor]:
+def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, specular: bool = True,
+                   background: bool = False) -> dict[str, Tensor]:
     """All enabled loss terms plus their weighted sum under ``"loss"``. ``specular``: whether
-    the render evaluated the GGX lobe (``RenderConfig.specular``); L_flat applies only without it."""
+    the render evaluated the GGX lobe (``RenderConfig.specular``); L_flat applies only without it.
+    ``background``: the model has a background volume (L_bg with masks)."""
     enc = srgb_encode if cfg.color_space == "srgb" else (lambda t: t.clamp(0.0, 1.0))
     gt = enc(rays.rgb)
     fg = rays.mask if (use_mask and rays.mask is not None) else None
@@ -126,6 +150,10 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
     zero = out.rgb_r.new_zeros(())
     r_enc = enc(out.rgb_r)
     L["loss_r"] = l1_masked(r_enc, gt, fg) if cfg.w_r > 0 else zero
+    L["loss_bg"] = zero
+    if background and fg is not None and cfg.w_r > 0:  # a thinned batch's kept misses carry their weight
+        outside = (1.0 - fg) * (rays.weight if rays.weight is not None else 1.0)
+        L["loss_bg"] = l1_masked(r_enc, gt, outside)
     surf_rays = fg if fg is not None else (out.weight_sum.detach() > 0.5).float()
     if cfg.lambda1_surf > 0:
         target = r_enc.detach() if cfg.surf_target == "radiance" else gt
@@ -159,10 +187,24 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
         if lit.sum() >= 2:
             lum = out.surf["albedo"][lit].mean(-1)
             L["loss_albedo_flat"] = (lum / lum.detach().mean().clamp_min(1e-4) - 1.0).abs().mean()
+    L["loss_material_range"] = zero
+    if cfg.w_material_range > 0 and "material_logits" in out.surf:
+        keep = surf_rays > 0.5
+        over = (out.surf["material_logits"].abs() - cfg.material_logit_max).clamp_min(0.0).mean(-1)
+        L["loss_material_range"] = (over * keep).sum() / keep.sum().clamp_min(1.0)
+    L["loss_metallic_unseen"] = zero
+    if cfg.w_metallic_unseen > 0 and "specular" in out.surf:
+        lit = surf_rays > 0.5
+        if rays.unlit is not None:
+            lit = lit & ~rays.unlit
+        unseen = out.surf["metallic"] * (1.0 - out.surf["specular"].detach())
+        L["loss_metallic_unseen"] = (unseen * lit).sum() / lit.sum().clamp_min(1.0)
     L["loss_mask"] = (mask_bce(out.weight_sum, rays.mask, rays.weight)
                       if (use_mask and rays.mask is not None and cfg.w_mask > 0) else zero)
-    L["loss"] = (cfg.w_r * L["loss_r"] + cfg.lambda1_surf * L["loss_surf"] + cfg.lambda2_vol * L["loss_vol"]
+    L["loss"] = (cfg.w_r * (L["loss_r"] + L["loss_bg"]) + cfg.lambda1_surf * L["loss_surf"] + cfg.lambda2_vol * L["loss_vol"]
                  + cfg.w_eikonal * L["loss_eik"] + cfg.w_hessian * L["loss_hess"]
                  + cfg.w_light * L["loss_light"] + cfg.w_mask * L["loss_mask"]
-                 + cfg.w_albedo_smooth * L["loss_albedo_smooth"] + cfg.w_albedo_flat * L["loss_albedo_flat"])
+                 + cfg.w_albedo_smooth * L["loss_albedo_smooth"] + cfg.w_albedo_flat * L["loss_albedo_flat"]
+                 + cfg.w_material_range * L["loss_material_range"]
+                 + cfg.w_metallic_unseen * L["loss_metallic_unseen"])
     return L

@@ -7,7 +7,8 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
-from nepf_core.fields.heads import BackgroundField, Deviation, HeadConfig, MaterialField, PhotonField, RadianceField
+from nepf_core.fields.background import BackgroundConfig, BackgroundVolume
+from nepf_core.fields.heads import Deviation, HeadConfig, MaterialField, PhotonField, RadianceField
 from nepf_core.fields.sdf_mlp import MLPSDF, MLPSDFConfig
 
 
@@ -30,8 +31,11 @@ class ModelConfig:
     init_variance: float = 0.3
     """NeuS deviation init: inv_s = exp(10 * 0.3) = 20."""
     background: bool = False
-    """Background radiance B(d). fit() decides it from the data (on for scenes without masks,
-    :mod:`nepf_core.train.rules.masks`) and builds the model with its run state's choice."""
+    """A background volume outside the unit sphere (:mod:`nepf_core.fields.background`). fit()
+    decides it from the data (:mod:`nepf_core.train.rules.masks`: on without masks, and with masks
+    whose images show something outside them) and builds the model with its run state's choice."""
+    background_volume: BackgroundConfig = field(default_factory=BackgroundConfig)
+    """Its sampling and capacity."""
     occupancy_resolution: int = 0
     """Occupancy grid resolution (0: none)."""
 
@@ -57,7 +61,7 @@ class NePFModel(nn.Module):
         self.photon = PhotonField(cfg.photon, F)
         self.material = MaterialField(cfg.material, F)
         self.deviation = Deviation(cfg.init_variance)
-        self.background = BackgroundField() if cfg.background else None
+        self.background = BackgroundVolume(cfg.background_volume) if cfg.background else None
         self.occupancy = None
         if cfg.occupancy_resolution > 0:
             from nepf_core.render.occupancy import OccupancyConfig, OccupancyGrid

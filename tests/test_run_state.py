@@ -47,7 +47,7 @@ def test_paper_takes_no_adaptive_decision():
     assert cfg.train.adaptive is False and fast().train.adaptive and tiny().train.adaptive
     rs = RunState.from_config(cfg)
     a = Adaptivity(RuleConfig.from_config(cfg, iters_fixed=False), rs)
-    a.before_training(SimpleNamespace(has_masks=True))
+    a.before_training(SimpleNamespace(has_masks=True, images=[torch.zeros(4, 4, 3).numpy()], masks=[torch.ones(4, 4).numpy()]))
     assert not a.wants_evidence(100)
     for step in range(1, 2001):
         a.after_step(step, fake_out(share=0.0, metallic=0.0), losses(eik=0.0))

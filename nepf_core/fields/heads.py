@@ -1,9 +1,8 @@
-"""The networks that read the SDF feature vector: radiance, photon, material, background.
+"""The networks that read the SDF feature vector: radiance, photon, material.
 
     radiance  R(x, v, n, feature) -> rgb in [0,1]^3                  (NeuS/IDR input layout)
     photon    P(x, n, feature)    -> (rho, phi, I): l = (sin rho cos phi, sin rho sin phi, cos rho)
     material  M(x, n, feature)    -> albedo in [0,1]^3, roughness in [0,1], metallic in [0,1]
-    background B(d)               -> rgb in [0,1]^3 (scenes without masks)
 
 Shapes: x, v, n ``[N, 3]``, feature ``[N, F]``.
 """
@@ -111,24 +110,14 @@ class MaterialField(nn.Module):
     data asks for it: from metallic 0.5 a rough metal lobe can explain a diffuse surface as well
     as a diffuse albedo does, and the fit drifts into that ambiguity (docs/FAST.md)."""
 
-    def forward(self, x: Tensor, n: Tensor, feature: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        out = torch.sigmoid(self.mlp(torch.cat([positional_encoding(x, self.cfg.n_freqs_x), n, feature], dim=-1)))
+    def forward(self, x: Tensor, n: Tensor, feature: Tensor, *, with_logits: bool = False):
+        """``(albedo [N,3], roughness [N], metallic [N])``; with ``with_logits`` also the raw outputs
+        ``z [N, 5]`` before the sigmoid (for :attr:`nepf_core.losses.LossConfig.w_material_range`)."""
+        z = self.mlp(torch.cat([positional_encoding(x, self.cfg.n_freqs_x), n, feature], dim=-1))
+        out = torch.sigmoid(z)
+        if with_logits:
+            return out[..., :3], out[..., 3], out[..., 4], z
         return out[..., :3], out[..., 3], out[..., 4]
-
-
-class BackgroundField(nn.Module):
-    """Background radiance by direction for unmasked scenes: ``d [N,3] -> rgb [N,3]``.
-
-    Composited as ``C = sum_i w_i c_i + (1 - sum_i w_i) B(d)``.
-    """
-
-    def __init__(self, width: int = 64, n_freqs: int = 4) -> None:
-        super().__init__()
-        self.n_freqs = n_freqs
-        self.mlp = build_mlp(MLPConfig(in_dim=encoding_dim(3, n_freqs), out_dim=3, width=width, depth=2))
-
-    def forward(self, d: Tensor) -> Tensor:
-        return torch.sigmoid(self.mlp(positional_encoding(d, self.n_freqs)))
 
 
 class Deviation(nn.Module):

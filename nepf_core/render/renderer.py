@@ -1,6 +1,6 @@
 """The NePF renderer: one set of samples, the NeuS weights, and three colours per ray.
 
-    L_r    = sum_i w_i R(x_i, d, n_i, f_i)              (+ (1 - sum w) B(d) without masks)
+    L_r    = sum_i w_i R(x_i, d, n_i, f_i)              (+ (1 - sum w) C_bg, fields/background.py)
     L_vol  = sum_i w_i f_bsdf(l_i, v, n_i; c_i, r_i, m_i) I_i (n_i . l_i)^+   (same background)
     L_surf = f_bsdf(...) I (n . l)^+  at i* = argmax_i w_i              (surface PBR)
 
@@ -139,17 +139,21 @@ class RenderOutput:
 
 
 def _shade_points(model, cfg: RenderConfig, shading: Shading, xs: Tensor, vs: Tensor, ns: Tensor, fs: Tensor,
-                  unlit: Tensor | None):
+                  unlit: Tensor | None, *, logits: bool = False):
     """Photon + material heads and the BSDF at ``N`` points: ``xs, vs, ns [N, 3]`` (position,
     ray direction, unit normal), ``fs [N, F]`` SDF features, ``unlit [N]`` bool or None (training:
     the colour error of an unlit point does not reach its albedo, ``RenderConfig.unlit_*``).
     Returns ``pbr [N, 3] = f(l, -v; c, r, m) I (n . l)^+`` (the fading lobe when
     ``shading.specular`` is off), ``light_dir [N, 3]``, ``intensity [N]``, ``albedo [N, 3]``,
-    ``roughness [N]``, ``metallic [N]`` (all fp32)."""
+    ``roughness [N]``, ``metallic [N]`` (all fp32), and with ``logits`` the material network's raw
+    outputs ``[N, 5]`` (else None)."""
     with torch.autocast(device_type=xs.device.type, dtype=torch.bfloat16,
                         enabled=cfg.amp_heads and xs.device.type == "cuda"):
         light_dir, intensity = model.photon(xs, ns, fs)
-        albedo, rough, metal = model.material(xs, ns, fs)
+        if logits:
+            albedo, rough, metal, z = model.material(xs, ns, fs, with_logits=True)
+        else:
+            (albedo, rough, metal), z = model.material(xs, ns, fs), None
     light_dir, intensity = light_dir.float(), intensity.float()
     albedo, rough, metal = albedo.float(), rough.float(), metal.float()
     albedo_shade = albedo
@@ -162,7 +166,7 @@ def _shade_points(model, cfg: RenderConfig, shading: Shading, xs: Tensor, vs: Te
     else:
         pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
                          intensity[:, None], lambertian=cfg.lambertian, specular=True, kind=cfg.bsdf_kind)
-    return pbr, light_dir, intensity, albedo, rough, metal
+    return pbr, light_dir, intensity, albedo, rough, metal, (None if z is None else z.float())
 
 
 def _expand(t: Tensor, S: int) -> Tensor:
@@ -257,7 +261,8 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         rad = model.radiance(xs, vs, gs, fs)
     rad = rad.float()
     unlit_sample = rays.unlit[sel_idx // S] if (train and rays.unlit is not None) else None
-    pbr, light_dir, intensity, albedo, rough, metal = _shade_points(model, cfg, shading, xs, vs, ns, fs, unlit_sample)
+    pbr, light_dir, intensity, albedo, rough, metal, z_mat = _shade_points(model, cfg, shading, xs, vs, ns, fs,
+                                                                          unlit_sample, logits=train)
 
     P = pts.shape[0]
     rad_full = pts.new_zeros(P, 3).index_copy(0, sel_idx, rad)
@@ -267,7 +272,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     rgb_vol = (w3 * pbr_full.reshape(R, S, 3)).sum(1)
     rgb_surf = pbr_full[flat_max]
     if getattr(model, "background", None) is not None:
-        bg = model.background(d)
+        bg = model.background(o, d, perturb=train and cfg.perturb, generator=generator)
         rgb_r = rgb_r + (1.0 - weight_sum)[:, None] * bg
         rgb_vol = rgb_vol + (1.0 - weight_sum)[:, None] * bg
 
@@ -279,6 +284,8 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         "x": pts[flat_max], "normal": normals[flat_max], "light_dir": light_dir[k],
         "intensity": intensity[k], "albedo": albedo[k], "roughness": rough[k], "metallic": metal[k],
     }
+    if z_mat is not None:
+        surf["material_logits"] = z_mat[k]
     if cfg.surface_refine and cfg.alpha_mode == "sample":
         # the same quantities at the zero crossing inside the max-weight section
         xr = o + d * surface_crossing_t(z, f, idx)[:, None]
@@ -286,9 +293,12 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         gr, _ = sdf_gradient_fd(sdf_only, xr, model.sdf.fd_step(), scheme="tetra", center="mean")
         nr = gr / gr.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         unlit_ray = rays.unlit if (train and rays.unlit is not None) else None
-        rgb_surf, ld_r, int_r, alb_r, rough_r, metal_r = _shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray)
+        rgb_surf, ld_r, int_r, alb_r, rough_r, metal_r, z_r = _shade_points(model, cfg, shading, xr, d, nr, fr,
+                                                                             unlit_ray, logits=train)
         surf = {"x": xr, "normal": nr, "light_dir": ld_r, "intensity": int_r, "albedo": alb_r,
                 "roughness": rough_r, "metallic": metal_r}
+        if z_r is not None:
+            surf["material_logits"] = z_r
     if train and cfg.albedo_smooth_sigma > 0:
         xj = surf["x"].detach() + cfg.albedo_smooth_sigma * torch.randn(surf["x"].shape, device=o.device,
                                                                         dtype=surf["x"].dtype)
@@ -296,7 +306,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         with torch.autocast(device_type=xj.device.type, dtype=torch.bfloat16,
                             enabled=cfg.amp_heads and xj.device.type == "cuda"):
             surf["albedo_jitter"] = model.material(xj, surf["normal"].detach(), fj)[0].float()
-    if need_surface_extras:
+    if need_surface_extras or train:  # training: the lobe's share feeds LossConfig.w_metallic_unseen
         with torch.no_grad():
             diffuse_only = bsdf.shade(surf["normal"], surf["light_dir"], -d, surf["albedo"],
                                       surf["roughness"][:, None], surf["metallic"][:, None],

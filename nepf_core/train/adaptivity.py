@@ -16,7 +16,7 @@ from nepf_core.train.decisions import Decision, DecisionLog
 from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.rules.empty_rays import EmptyRayRule
 from nepf_core.train.rules.hessian import HessianRule
-from nepf_core.train.rules.masks import decide_masks
+from nepf_core.train.rules.masks import decide_masks, lit_outside_masks
 from nepf_core.train.rules.occupancy import carve_visual_hull, empty_space_decision, refresh_occupancy
 from nepf_core.train.rules.plateau import PlateauRule
 from nepf_core.train.rules.specular import SpecularRule
@@ -64,7 +64,8 @@ class Adaptivity:
         """Decisions from the data: mask loss, background model, what the occupancy grid is for."""
         c2w = getattr(scene, "c2w", None)
         self.cams = None if c2w is None else torch.as_tensor(np.asarray(c2w)[:, :3, 3], dtype=torch.float32)
-        use, background, decisions = decide_masks(scene.has_masks, self.rc.w_mask)
+        lit = lit_outside_masks(scene.images, scene.masks) if scene.has_masks else 0.0
+        use, background, decisions = decide_masks(scene.has_masks, self.rc.w_mask, lit)
         self.run_state.use_mask_loss, self.run_state.background = use, background
         for d in decisions:
             self.record(d)

@@ -214,7 +214,7 @@ class TrainingRun:
         out = render_rays(model, rays, self.run_cfg.render, train=True, cos_anneal=self.anneal, generator=self.gen,
                           need_surface_extras=self._evidence, shading=rs.shading())
         losses = compute_losses(out, rays, rs.loss_config(self.cfg.loss), use_mask=rs.use_mask_loss,
-                                specular=rs.specular)
+                                specular=rs.specular, background=rs.background)
         loss = losses["loss"]
         self.optimizer.zero_grad(set_to_none=True)
         ok = bool(torch.isfinite(loss))

@@ -1,22 +1,57 @@
 """Masks decide the mask loss and the background model (before training).
 
-With masks, the mask BCE supervises the opacity and everything outside the mask is empty (no
-background model). Without masks there is no mask loss and a background radiance ``B(d)``
-explains the pixels the object does not cover. This follows from the data, so it applies
-with adaptivity off too.
+* No masks: no mask loss; a background volume (:mod:`nepf_core.fields.background`) explains
+  the pixels the object does not cover.
+* Masks, and the images show something outside them (a real capture: table, floor, room): the
+  mask BCE supervises the opacity, and the background volume is trained on the pixels outside
+  the masks (``loss_bg``), so that the full image can be rendered and its PSNR means something.
+* Masks, and the images are black outside them (the synthetic scenes): everything outside the
+  mask is empty; no background model.
+
+"Shows something" is measured on the data: more than ``BACKGROUND_MIN_FRACTION`` of the
+pixels outside the masks have a channel above ``BACKGROUND_LEVEL`` (linear). This follows from
+the data, so it applies with adaptivity off too.
 """
 
 from __future__ import annotations
 
+import numpy as np
+
 from nepf_core.train.decisions import Decision
 
+BACKGROUND_LEVEL = 0.01
+"""Linear value above which a pixel outside the masks is not black (about 25/255 in sRGB)."""
+BACKGROUND_MIN_FRACTION = 0.05
+"""Share of the pixels outside the masks that must be above ``BACKGROUND_LEVEL``."""
 
-def decide_masks(has_masks: bool, w_mask: float) -> tuple[bool, bool, list[Decision]]:
-    """``(use_mask_loss, background, decisions)`` for a dataset with or without masks."""
+
+def lit_outside_masks(images, masks) -> float:
+    """Share of the pixels outside the masks whose brightest channel exceeds ``BACKGROUND_LEVEL``.
+
+    ``images``: per view ``[H, W, 3]`` linear; ``masks``: per view ``[H, W]`` (foreground > 0.5).
+    Views are read one at a time (no copy of the image set); 0 when no pixel is outside."""
+    lit = total = 0
+    for img, m in zip(images, masks):
+        out = np.asarray(m) <= 0.5
+        px = np.asarray(img)[out]
+        lit += int((px.max(-1) > BACKGROUND_LEVEL).sum()) if px.size else 0
+        total += int(out.sum())
+    return lit / total if total else 0.0
+
+
+def decide_masks(has_masks: bool, w_mask: float, lit_outside: float = 0.0) -> tuple[bool, bool, list[Decision]]:
+    """``(use_mask_loss, background, decisions)`` for a dataset with or without masks;
+    ``lit_outside`` is :func:`lit_outside_masks` of a masked dataset."""
     if has_masks:
         use = w_mask > 0
-        return use, False, [Decision("mask_loss", use, "the dataset has masks: mask BCE supervises the opacity"),
-                            Decision("background_model", False, "masked scene: everything outside the mask is empty")]
+        mask_d = Decision("mask_loss", use, "the dataset has masks: mask BCE supervises the opacity")
+        if lit_outside > BACKGROUND_MIN_FRACTION:
+            return use, True, [mask_d, Decision(
+                "background_model", True,
+                f"{100 * lit_outside:.0f}% of the pixels outside the masks are not black: a background "
+                "volume is trained on them so that the full image is rendered")]
+        return use, False, [mask_d, Decision("background_model", False,
+                                             "the images are black outside the masks: everything outside is empty")]
     return False, True, [Decision("mask_loss", False, "the dataset has no masks: no mask loss"),
                          Decision("background_model", True,
-                                  "no masks: a background radiance B(d) explains non-object pixels")]
+                                  "no masks: a background volume explains what the object does not cover")]

@@ -1,0 +1,80 @@
+"""The material priors of the fast preset (nepf_core.losses): the logit range term and the
+unseen-lobe metallic term, by hand-worked values, and the renderer feeding them."""
+
+import pytest
+import torch
+
+from nepf_core.losses import LossConfig, compute_losses
+from nepf_core.rays import RayBatch
+
+
+class _Out:
+    def __init__(self, surf, R):
+        z = torch.zeros(R, 3)
+        self.rgb_r = self.rgb_vol = self.rgb_surf = z
+        self.weight_sum = torch.ones(R)
+        self.w_max = torch.ones(R)
+        self.eikonal = self.hessian = torch.zeros(0)
+        self.eikonal_weight = None
+        self.surf = surf
+
+
+def _cfg(**kw):
+    base = dict(w_r=0, lambda1_surf=0, lambda2_vol=0, w_eikonal=0, w_hessian=0, w_light=0, w_mask=0)
+    base.update(kw)
+    return LossConfig(**base)
+
+
+def test_material_range_by_hand():
+    logits = torch.tensor([[0.0, 4.0, -2.5, 5.5, 0.0],     # over by 1 and 2.5: mean 3.5 / 5 = 0.7
+                           [2.5, -2.9, 2.9, 0.0, 0.0],      # within: 0
+                           [10.0, 0.0, 0.0, 0.0, 0.0]])     # a ray off the surface: not counted
+    surf = {"material_logits": logits.clone().requires_grad_(True)}
+    rays = RayBatch(origins=torch.zeros(3, 3), directions=torch.ones(3, 3), rgb=torch.zeros(3, 3),
+                    mask=torch.tensor([1.0, 1.0, 0.0]))
+    L = compute_losses(_Out(surf, 3), rays, _cfg(w_material_range=2.0), use_mask=True)
+    assert float(L["loss_material_range"]) == pytest.approx((0.7 + 0.0) / 2)
+    assert float(L["loss"]) == pytest.approx(2.0 * 0.35)
+    L["loss"].backward()
+    g = surf["material_logits"].grad
+    # d/dz of 2 * mean_rays mean_k relu(|z| - 3): 2 / (2 rays * 5 channels) * sign(z) where over
+    assert g[0, 1] == pytest.approx(0.2) and g[0, 3] == pytest.approx(0.2)
+    assert g[0, 2] == 0 and g[1].abs().sum() == 0 and g[2].abs().sum() == 0
+
+
+def test_metallic_unseen_by_hand():
+    metallic = torch.tensor([0.8, 0.8, 0.5, 0.9]).requires_grad_(True)
+    share = torch.tensor([0.0, 1.0, 0.5, 0.0])   # ray 3 is unlit: not counted
+    surf = {"metallic": metallic, "specular": share}
+    rays = RayBatch(origins=torch.zeros(4, 3), directions=torch.ones(4, 3), rgb=torch.zeros(4, 3),
+                    mask=torch.ones(4), unlit=torch.tensor([False, False, False, True]))
+    L = compute_losses(_Out(surf, 4), rays, _cfg(w_metallic_unseen=1.0), use_mask=True)
+    # (0.8 * 1 + 0.8 * 0 + 0.5 * 0.5) / 3 lit rays
+    assert float(L["loss_metallic_unseen"]) == pytest.approx((0.8 + 0.25) / 3)
+    L["loss"].backward()
+    assert torch.allclose(metallic.grad, torch.tensor([1 / 3, 0.0, 0.5 / 3, 0.0]))
+
+
+def test_training_render_feeds_both_priors():
+    """A training render returns the material logits at the surface point (sigmoid of them is
+    the shaded material) and the lobe's share in [0, 1]; an inference render returns neither logits."""
+    from nepf_core.config import fast
+    from nepf_core.model import NePFModel
+    from nepf_core.render.renderer import render_rays
+
+    torch.manual_seed(0)
+    cfg = fast()
+    model = NePFModel(cfg.model)
+    o = torch.tensor([[0.0, 0.0, -2.5]]).repeat(32, 1)
+    d = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0]]) + 0.1 * torch.randn(32, 3), dim=-1)
+    out = render_rays(model, RayBatch(o, d), cfg.render, train=True)
+    s = out.surf
+    z = s["material_logits"]
+    assert z.shape == (32, 5)
+    assert torch.allclose(torch.sigmoid(z[:, :3]), s["albedo"], atol=1e-6)
+    assert torch.allclose(torch.sigmoid(z[:, 3]), s["roughness"], atol=1e-6)
+    assert torch.allclose(torch.sigmoid(z[:, 4]), s["metallic"], atol=1e-6)
+    assert ((s["specular"] >= 0) & (s["specular"] <= 1)).all()
+    with torch.no_grad():
+        out = render_rays(model, RayBatch(o, d), cfg.render, train=False)
+    assert "material_logits" not in out.surf
