@@ -56,11 +56,6 @@ class TrainConfig:
     """Occupancy-grid refresh period in steps (when the model has one)."""
     coarse_to_fine_frac: float = 0.3
     """Fraction of training over which grid levels are activated coarse-to-fine."""
-    min_inv_s: float = 0.0
-    """> 0: the NeuS sharpness ``inv_s`` is held at or above a floor that rises geometrically from
-    its start (``exp(10 init_variance)``) to this value over ``anneal_end`` steps
-    (:func:`nepf_core.train.schedule.sharpness_floor`; the deviation is projected after each
-    optimiser step). 0: off (the paper)."""
     amp: bool = False
     """bf16 autocast for the head networks on CUDA (never on CPU); the SDF and density stay fp32
     (RenderConfig.amp_heads). No GradScaler: bf16 has fp32's exponent range."""

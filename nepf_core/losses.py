@@ -12,6 +12,7 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_asm   = w_albedo_smooth * mean | c(x*) - c(x* + eps) |   (albedo smoothness prior, off in paper)
     L_flat  = w_albedo_flat * mean_lit | Y(c) / sg(mean_lit Y(c)) - 1 |, Y = channel mean   (lobe off only)
     L_mask  = w_mask * BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)
+    L_bsm   = w_brdf_smooth * mean (|r(x*) - r(x* + eps)| + |m(x*) - m(x* + eps)|)   (off in paper)
     L_range = w_material_range * mean_surf mean_k relu(|z_k| - z_max)   (z: material logits; off in paper)
     L_unseen = w_metallic_unseen * mean_lit m (1 - s)   (s: the lobe's share of L_surf, stop-grad; off in paper)
     L_bg    = w_r * mean_{mask = 0} | srgb(L_r) - srgb(L_gt) |   (masks and a background model)
@@ -70,6 +71,10 @@ class LossConfig:
     the colour terms' gradient on the albedo is larger, and that gradient carries the shading
     ``I (n.l) / pi`` and the sRGB slope: the weight must stay well under ``lambda2_vol`` times
     that slope, or the texture moves into the light (docs/FAST.md, "What fixed it")."""
+    w_brdf_smooth: float = 0.0
+    """The smoothness prior of ``w_albedo_smooth`` for roughness and metallic:
+    ``mean (|r(x*) - r(x* + eps)| + |m(x*) - m(x* + eps)|)``. With a smoothness prior on the albedo
+    alone, a texture is cheaper to carry in metallic (a ``(1 - m)`` dimmer) than in the albedo."""
     w_material_range: float = 0.0
     """Keep the material network's raw outputs (albedo, roughness, metallic logits ``z``) within
     ``|z| <= material_logit_max``: ``mean relu(|z| - z_max)`` over surface rays. A sigmoid past
@@ -187,6 +192,12 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
         if lit.sum() >= 2:
             lum = out.surf["albedo"][lit].mean(-1)
             L["loss_albedo_flat"] = (lum / lum.detach().mean().clamp_min(1e-4) - 1.0).abs().mean()
+    L["loss_brdf_smooth"] = zero
+    if cfg.w_brdf_smooth > 0 and "roughness_jitter" in out.surf:
+        keep = surf_rays > 0.5
+        s = out.surf
+        diff = (s["roughness"] - s["roughness_jitter"]).abs() + (s["metallic"] - s["metallic_jitter"]).abs()
+        L["loss_brdf_smooth"] = (diff * keep).sum() / keep.sum().clamp_min(1.0)
     L["loss_material_range"] = zero
     if cfg.w_material_range > 0 and "material_logits" in out.surf:
         keep = surf_rays > 0.5
@@ -205,6 +216,6 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
                  + cfg.w_eikonal * L["loss_eik"] + cfg.w_hessian * L["loss_hess"]
                  + cfg.w_light * L["loss_light"] + cfg.w_mask * L["loss_mask"]
                  + cfg.w_albedo_smooth * L["loss_albedo_smooth"] + cfg.w_albedo_flat * L["loss_albedo_flat"]
-                 + cfg.w_material_range * L["loss_material_range"]
+                 + cfg.w_brdf_smooth * L["loss_brdf_smooth"] + cfg.w_material_range * L["loss_material_range"]
                  + cfg.w_metallic_unseen * L["loss_metallic_unseen"])
     return L

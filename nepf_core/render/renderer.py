@@ -305,7 +305,8 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         _, fj = model.sdf(xj)
         with torch.autocast(device_type=xj.device.type, dtype=torch.bfloat16,
                             enabled=cfg.amp_heads and xj.device.type == "cuda"):
-            surf["albedo_jitter"] = model.material(xj, surf["normal"].detach(), fj)[0].float()
+            a_j, r_j, m_j = model.material(xj, surf["normal"].detach(), fj)
+            surf["albedo_jitter"], surf["roughness_jitter"], surf["metallic_jitter"] = a_j.float(), r_j.float(), m_j.float()
     if need_surface_extras or train:  # training: the lobe's share feeds LossConfig.w_metallic_unseen
         with torch.no_grad():
             diffuse_only = bsdf.shade(surf["normal"], surf["light_dir"], -d, surf["albedo"],

@@ -18,7 +18,6 @@ groups (grid tables at ``train.lr_grid``, the rest at ``train.lr``);
 from __future__ import annotations
 
 import dataclasses
-import math
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Sequence
@@ -42,7 +41,7 @@ from nepf_core.train.metrics_log import MetricsLog, plot_error_vs_time, write_js
 from nepf_core.train.result import FitError, FitResult
 from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.run_state import RunState
-from nepf_core.train.schedule import (coarse_to_fine, cos_anneal_ratio, progress_fraction, run_eta, sharpness_floor,
+from nepf_core.train.schedule import (coarse_to_fine, cos_anneal_ratio, progress_fraction, run_eta,
                                      scheduled_lr_factor)
 from nepf_core.train.setup import init_radiance_to_data, make_optimizer, resolve_device, unlit_pixels
 from nepf_core.weight_average import ParamEMA
@@ -225,11 +224,6 @@ class TrainingRun:
             ok = bool(torch.isfinite(gn))
         if ok:
             self.optimizer.step()
-            if tc.min_inv_s > 0:   # the sharpness floor (schedule.sharpness_floor)
-                floor = sharpness_floor(self.step, math.exp(10.0 * self.cfg.model.init_variance), tc.min_inv_s,
-                                        tc.anneal_end)
-                with torch.no_grad():
-                    model.deviation.variance.clamp_(min=math.log(floor) / 10.0)
             if self.ema is not None:
                 self.ema.update(model)
         else:

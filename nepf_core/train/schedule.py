@@ -62,18 +62,3 @@ def coarse_to_fine(p: float, frac: float) -> float:
     """Share of the grid levels' schedule done: ``min(1, p / frac)``."""
     return min(1.0, p / max(frac, 1e-6))
 
-
-def sharpness_floor(step: int, start: float, end: float, steps: int) -> float:
-    """The lowest NeuS sharpness ``inv_s`` allowed at ``step``: geometric from ``start`` to ``end``
-    over ``steps`` steps, ``start (end / start) ** min(1, step / steps)``; 0 when ``end <= 0`` (off).
-
-    Why: without masks nothing in the images forces a surface early, and a fog (``inv_s ~ 20``,
-    opacity spread over ~0.1 of the sphere) explains a room seen through the region of interest
-    as well as surfaces do, so the sharpness stays at its start (measured on instant_ngp_fox,
-    docs/ARCHITECTURE.md "Real captures"). A rising floor makes the SDF commit to surfaces; the
-    masked synthetic scenes sharpen faster on their own (spot_textured: 110 at step 500, 164 at
-    1000), so a floor below that does not bind there."""
-    if end <= 0:
-        return 0.0
-    f = min(1.0, max(step, 0) / max(steps, 1))
-    return float(start * (end / start) ** f)
