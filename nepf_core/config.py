@@ -146,7 +146,12 @@ def fast() -> NePFConfig:
     L_surf at the zero crossing"). It shades with the glTF metallic-roughness BRDF
     (``render.bsdf_kind="gltf"``: Lambert + Smith GGX), the BRDF three.js and Blender render the
     exported GLB with, so its roughness and metallic mean there what they meant in training;
-    ``paper`` keeps the supplementary's BSDF (:mod:`nepf_core.bsdf`). Options tried for this
+    ``paper`` keeps the supplementary's BSDF (:mod:`nepf_core.bsdf`). Three material priors
+    (docs/FAST.md, "Materials: saturation and the unseen lobe"): the material logits stay within
+    ±3 (no saturated channel), metallic costs where its lobe is not seen (a texture cannot hide in a
+    ``(1 - m)`` dimmer), and roughness and metallic share the albedo's smoothness prior. The
+    trade-off, measured: dielectrics relight far better (spot_textured 6.6 -> 16.7 dB, torus_glossy
+    18.6 -> 21.3 dB) and a metal comes out dielectric (bunny_metal). Options tried for this
     preset and not adopted: docs/TRIED.md."""
     head = HeadConfig(width=64, depth=2, activation="relu", n_freqs_v=4)
     return NePFConfig(
@@ -158,7 +163,8 @@ def fast() -> NePFConfig:
                             normals="fd", alpha_mode="sample", head_weight_threshold=1e-4,
                             eikonal_fraction=0.1, unlit_albedo_stopgrad=True, albedo_smooth_sigma=0.02,
                             surface_refine=True, bsdf_kind="gltf"),
-        loss=LossConfig(w_hessian=0.0, w_albedo_smooth=2e-4, w_albedo_flat=3e-6),
+        loss=LossConfig(w_hessian=0.0, w_albedo_smooth=2e-4, w_albedo_flat=3e-6, w_brdf_smooth=2e-4,
+                        w_material_range=1e-4, w_metallic_unseen=1e-4),
         train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,
                           anneal_end=2000, log_every=20, sync_every=500, checkpoint_every=1000,
                           eval_every_s=60.0, eval_stride=1, ema_decay=0.995, adaptive=True),
