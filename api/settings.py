@@ -40,6 +40,10 @@ class Settings(BaseSettings):
     max_image_side: int = Field(
         1600, ge=0, description="Working-resolution ceiling: longer image sides are area-resampled down to it "
                                 "at load; a job's max_image_side may ask less, not more (0: full resolution).")
+    default_image_side: int = Field(
+        800, ge=0, description="Working side of a job that asks none (capped by NEPF_MAX_IMAGE_SIDE; 0: the ceiling). "
+                               "A CPU step draws a fixed number of rays, so a larger side only adds load time, memory "
+                               "and evaluation cost within a job's budget (docs/SERVICE.md, 'Limits').")
     validate_timeout_s: float = Field(300.0, description="Timeout of the dataset validation subprocess.")
     validate_max_memory_mb: int = Field(4096, description="Address-space cap of the validation subprocess (0: none).")
     python_executable: Optional[str] = Field(
@@ -99,10 +103,13 @@ class Settings(BaseSettings):
 
     def job_max_side(self, asked: Optional[int]) -> int:
         """The long side a job trains at: its ``max_image_side`` capped by the ceiling
-        ``max_image_side`` (the ceiling when it asks nothing; 0: full size)."""
+        ``max_image_side``; when it asks nothing, ``default_image_side`` capped the same way (the
+        ceiling when that is 0). 0: full size."""
         ceiling = self.max_image_side
         if not asked:
-            return ceiling
+            if not self.default_image_side:
+                return ceiling
+            return min(self.default_image_side, ceiling) if ceiling else self.default_image_side
         return min(int(asked), ceiling) if ceiling else int(asked)
 
     @property

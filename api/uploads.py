@@ -213,13 +213,14 @@ def validate_dataset(root: Path, settings: Settings, max_side: Optional[int] = N
     """Run the core's validator in a subprocess (the API never imports nepf_core).
 
     It checks the decoded-pixel cap ``NEPF_MAX_TOTAL_PIXELS`` from the image headers and
-    reports the working size at ``max_side`` (default: the ceiling ``NEPF_MAX_IMAGE_SIDE``)."""
+    reports the working size at ``max_side`` (default: what a job that asks none trains at,
+    :meth:`Settings.job_max_side`)."""
     py = settings.python_executable or sys.executable
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(REPO_ROOT)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
     env.setdefault("OMP_NUM_THREADS", "1")
     try:
-        side = settings.max_image_side if max_side is None else max_side
+        side = settings.job_max_side(None) if max_side is None else max_side
         cmd = [py, "-m", "nepf_core.data.validate", "--max-side", str(side),
                "--max-total-pixels", str(settings.max_total_pixels), str(root)]
         proc = subprocess.run(cmd, capture_output=True,

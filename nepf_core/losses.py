@@ -87,7 +87,7 @@ class LossConfig:
     least 0.045; roughness >= 0.047 still gives a near-mirror glTF lobe (alpha = 3e-3)."""
     w_metallic_unseen: float = 0.0
     """Metallic only where its lobe is seen: ``mean_lit m (1 - s)`` with ``s`` the specular lobe's
-    share of the shaded surface colour (stop-grad, ``surf["specular"]``), over lit surface rays.
+    share of the shaded surface colour (stop-grad, ``surf["lobe_share"]``), over lit surface rays.
     A metal whose lobe the views never see (roughness near 0, so the highlight is a point that no
     pixel catches) only darkens its diffuse by ``(1 - m)``, which the albedo can do as well; the
     images cannot tell the two apart, and without a prior the texture goes into metallic. Where
@@ -204,11 +204,11 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
         over = (out.surf["material_logits"].abs() - cfg.material_logit_max).clamp_min(0.0).mean(-1)
         L["loss_material_range"] = (over * keep).sum() / keep.sum().clamp_min(1.0)
     L["loss_metallic_unseen"] = zero
-    if cfg.w_metallic_unseen > 0 and "specular" in out.surf:
+    if cfg.w_metallic_unseen > 0 and "lobe_share" in out.surf:
         lit = surf_rays > 0.5
         if rays.unlit is not None:
             lit = lit & ~rays.unlit
-        unseen = out.surf["metallic"] * (1.0 - out.surf["specular"].detach())
+        unseen = out.surf["metallic"] * (1.0 - out.surf["lobe_share"].detach())
         L["loss_metallic_unseen"] = (unseen * lit).sum() / lit.sum().clamp_min(1.0)
     L["loss_mask"] = (mask_bce(out.weight_sum, rays.mask, rays.weight)
                       if (use_mask and rays.mask is not None and cfg.w_mask > 0) else zero)

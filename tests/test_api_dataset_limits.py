@@ -129,6 +129,13 @@ def test_working_size_is_reported_and_capped_by_the_ceiling(service, tmp_path):
     r = post(clients["alice"], z)                                  # no ask: the ceiling
     assert r.status_code == 202 and r.json()["dataset"]["working_width"] == 800
     assert svc.settings.job_max_side(None) == 800 and svc.settings.job_max_side(500) == 500
+    # a job that asks nothing trains at the default side, capped by the ceiling
+    from api.settings import Settings
+    assert Settings(max_image_side=1600, default_image_side=800).job_max_side(None) == 800
+    assert Settings(max_image_side=600, default_image_side=800).job_max_side(None) == 600
+    assert Settings(max_image_side=1600, default_image_side=0).job_max_side(None) == 1600
+    assert Settings(max_image_side=0, default_image_side=800).job_max_side(None) == 800
+    assert Settings(max_image_side=0, default_image_side=0).job_max_side(None) == 0
     r = post(clients["alice"], z, config={"max_image_side": 801})
     assert r.status_code == 422 and r.json()["code"] == "invalid_config"
     assert "NEPF_MAX_IMAGE_SIDE" in r.json()["detail"] and "800" in r.json()["detail"]

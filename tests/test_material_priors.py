@@ -45,7 +45,7 @@ def test_material_range_by_hand():
 def test_metallic_unseen_by_hand():
     metallic = torch.tensor([0.8, 0.8, 0.5, 0.9]).requires_grad_(True)
     share = torch.tensor([0.0, 1.0, 0.5, 0.0])   # ray 3 is unlit: not counted
-    surf = {"metallic": metallic, "specular": share}
+    surf = {"metallic": metallic, "lobe_share": share}
     rays = RayBatch(origins=torch.zeros(4, 3), directions=torch.ones(4, 3), rgb=torch.zeros(4, 3),
                     mask=torch.ones(4), unlit=torch.tensor([False, False, False, True]))
     L = compute_losses(_Out(surf, 4), rays, _cfg(w_metallic_unseen=1.0), use_mask=True)
@@ -74,7 +74,11 @@ def test_training_render_feeds_both_priors():
     assert torch.allclose(torch.sigmoid(z[:, :3]), s["albedo"], atol=1e-6)
     assert torch.allclose(torch.sigmoid(z[:, 3]), s["roughness"], atol=1e-6)
     assert torch.allclose(torch.sigmoid(z[:, 4]), s["metallic"], atol=1e-6)
-    assert ((s["specular"] >= 0) & (s["specular"] <= 1)).all()
+    assert ((s["lobe_share"] >= 0) & (s["lobe_share"] <= 1)).all()
+    # the lobe rule's statistics keep their own cadence: only on renders that ask for them
+    assert "specular" not in s and "diffuse_only" not in s
+    out = render_rays(model, RayBatch(o, d), cfg.render, train=True, need_surface_extras=True)
+    assert torch.equal(out.surf["specular"], out.surf["lobe_share"])
     with torch.no_grad():
         out = render_rays(model, RayBatch(o, d), cfg.render, train=False)
     assert "material_logits" not in out.surf

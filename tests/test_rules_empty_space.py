@@ -7,6 +7,7 @@ import json
 import math
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 import torch
 
@@ -16,11 +17,21 @@ from nepf_core.train.run_state import RunState
 from rule_fixtures import fast, make_adapt, named, records, tiny
 
 
+def _scene(has_masks: bool, outside: float = 0.0):
+    """A stand-in scene: one 4x4 view, half of it inside the mask, ``outside`` the linear value of
+    the pixels outside the mask (0: black, as the synthetic scenes are)."""
+    img = np.full((4, 4, 3), outside, np.float32)
+    mask = np.zeros((4, 4), bool)
+    mask[:2] = True
+    img[mask] = 0.5
+    return SimpleNamespace(has_masks=has_masks, images=[img], masks=[mask] if has_masks else None)
+
+
 @pytest.mark.parametrize("has_masks", [True, False])
 def test_mask_and_background_decisions(has_masks):
     a, rs = make_adapt()
     rs.background = not has_masks  # the opposite of what should be decided
-    a.before_training(SimpleNamespace(has_masks=has_masks))
+    a.before_training(_scene(has_masks))
     assert rs.use_mask_loss is has_masks
     assert rs.background is (not has_masks)
     (m,) = named(a, "mask_loss")
@@ -30,12 +41,23 @@ def test_mask_and_background_decisions(has_masks):
     assert not named(a, "empty_space_skipping")  # tiny has no occupancy grid
 
 
+def test_masks_with_a_lit_outside_get_the_background_volume():
+    """A masked capture whose images show something outside the masks (DTU) gets the background
+    volume as well as the mask loss; black outside (the synthetic scenes) gets none."""
+    for outside, want in ((0.3, True), (0.0, False)):
+        a, rs = make_adapt()
+        a.before_training(_scene(True, outside))
+        assert rs.use_mask_loss is True and rs.background is want
+        (b,) = named(a, "background_model")
+        assert b["value"] is want
+
+
 def test_mask_loss_off_when_its_weight_is_zero_and_occupancy_recorded():
     cfg = fast()
     cfg.loss.w_mask = 0.0
     rs = RunState.from_config(cfg)
     a = Adaptivity(RuleConfig.from_config(cfg, iters_fixed=True), rs)
-    a.before_training(SimpleNamespace(has_masks=True))
+    a.before_training(_scene(True))
     assert rs.use_mask_loss is False and rs.background is False
     (e,) = named(a, "empty_space_skipping")
     assert e["value"] is True and "64^3" in e["reason"]

@@ -126,8 +126,9 @@ class RenderOutput:
     """``|H f|_F`` (Frobenius norm of the SDF Hessian) on a subset of samples, ``[Q]`` (may be empty)."""
     surf: dict = field(default_factory=dict)
     """At the max-weight sample: x, normal, light_dir, intensity, albedo, roughness,
-    metallic; with ``need_surface_extras`` also (no grad) specular (share of L_surf from the
-    specular lobe), specular_abs and diffuse_only (``[R, 3]``, L_surf without the lobe)."""
+    metallic; in training renders ``lobe_share`` (no grad: the specular lobe's share of L_surf) and
+    ``material_logits``; with ``need_surface_extras`` also (no grad) specular (the same share),
+    specular_abs and diffuse_only (``[R, 3]``, L_surf without the lobe)."""
     n_samples: int = 0
     n_head_evals: int = 0
     inv_s: float = 0.0
@@ -307,16 +308,19 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
                             enabled=cfg.amp_heads and xj.device.type == "cuda"):
             a_j, r_j, m_j = model.material(xj, surf["normal"].detach(), fj)
             surf["albedo_jitter"], surf["roughness_jitter"], surf["metallic_jitter"] = a_j.float(), r_j.float(), m_j.float()
-    if need_surface_extras or train:  # training: the lobe's share feeds LossConfig.w_metallic_unseen
+    if need_surface_extras or train:
         with torch.no_grad():
             diffuse_only = bsdf.shade(surf["normal"], surf["light_dir"], -d, surf["albedo"],
                                       surf["roughness"][:, None], surf["metallic"][:, None],
                                       surf["intensity"][:, None], lambertian=cfg.lambertian, specular=False,
                                       kind=cfg.bsdf_kind)
             total = rgb_surf.detach().sum(-1)
-            surf["specular"] = ((total - diffuse_only.sum(-1)).clamp_min(0) / total.clamp_min(1e-6))
-            surf["specular_abs"] = (rgb_surf.detach() - diffuse_only).clamp_min(0).mean(-1)
-            surf["diffuse_only"] = diffuse_only
+            share = (total - diffuse_only.sum(-1)).clamp_min(0) / total.clamp_min(1e-6)
+            surf["lobe_share"] = share   # every training step: LossConfig.w_metallic_unseen
+            if need_surface_extras:      # the lobe rule's checks only (their cadence is the rule's)
+                surf["specular"] = share
+                surf["specular_abs"] = (rgb_surf.detach() - diffuse_only).clamp_min(0).mean(-1)
+                surf["diffuse_only"] = diffuse_only
     depth = (weights * mid).sum(-1)
     return RenderOutput(rgb_r=rgb_r, rgb_vol=rgb_vol, rgb_surf=rgb_surf, weight_sum=weight_sum, w_max=w_max,
                         depth=depth, eikonal=eikonal, hessian=hess, surf=surf, n_samples=int(P),
