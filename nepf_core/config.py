@@ -150,7 +150,7 @@ def fast() -> NePFConfig:
     (docs/FAST.md, "Materials: saturation and the unseen lobe"): the material logits stay within
     ±3 (no saturated channel), metallic costs where its lobe is not seen (a texture cannot hide in a
     ``(1 - m)`` dimmer), and roughness and metallic share the albedo's smoothness prior. The
-    trade-off, measured: dielectrics relight far better (spot_textured 6.6 -> 16.7 dB, torus_glossy
+    trade-off, measured: dielectrics relight far better (spot_textured 6.6 -> 17.2 dB, torus_glossy
     18.6 -> 21.3 dB) and a metal comes out dielectric (bunny_metal). Options tried for this
     preset and not adopted: docs/TRIED.md."""
     head = HeadConfig(width=64, depth=2, activation="relu", n_freqs_v=4)
