@@ -33,8 +33,8 @@ def test_material_range_by_hand():
     rays = RayBatch(origins=torch.zeros(3, 3), directions=torch.ones(3, 3), rgb=torch.zeros(3, 3),
                     mask=torch.tensor([1.0, 1.0, 0.0]))
     L = compute_losses(_Out(surf, 3), rays, _cfg(w_material_range=2.0), use_mask=True)
-    assert float(L["loss_material_range"]) == pytest.approx((0.7 + 0.0) / 2)
-    assert float(L["loss"]) == pytest.approx(2.0 * 0.35)
+    assert float(L["loss_material_range"].detach()) == pytest.approx((0.7 + 0.0) / 2)
+    assert float(L["loss"].detach()) == pytest.approx(2.0 * 0.35)
     L["loss"].backward()
     g = surf["material_logits"].grad
     # d/dz of 2 * mean_rays mean_k relu(|z| - 3): 2 / (2 rays * 5 channels) * sign(z) where over
@@ -50,7 +50,7 @@ def test_metallic_unseen_by_hand():
                     mask=torch.ones(4), unlit=torch.tensor([False, False, False, True]))
     L = compute_losses(_Out(surf, 4), rays, _cfg(w_metallic_unseen=1.0), use_mask=True)
     # (0.8 * 1 + 0.8 * 0 + 0.5 * 0.5) / 3 lit rays
-    assert float(L["loss_metallic_unseen"]) == pytest.approx((0.8 + 0.25) / 3)
+    assert float(L["loss_metallic_unseen"].detach()) == pytest.approx((0.8 + 0.25) / 3)
     L["loss"].backward()
     assert torch.allclose(metallic.grad, torch.tensor([1 / 3, 0.0, 0.5 / 3, 0.0]))
 
