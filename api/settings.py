@@ -106,11 +106,10 @@ class Settings(BaseSettings):
         ``max_image_side``; when it asks nothing, ``default_image_side`` capped the same way (the
         ceiling when that is 0). 0: full size."""
         ceiling = self.max_image_side
-        if not asked:
-            if not self.default_image_side:
-                return ceiling
-            return min(self.default_image_side, ceiling) if ceiling else self.default_image_side
-        return min(int(asked), ceiling) if ceiling else int(asked)
+        want = int(asked) if asked else self.default_image_side
+        if not want:
+            return ceiling
+        return min(want, ceiling) if ceiling else want
 
     @property
     def jobs_path(self) -> Path:

@@ -55,8 +55,8 @@ def render_view(model, sampler: PixelSampler, k: int, cfg: RenderConfig, *, stri
         with torch.no_grad():
             alpha = out.weight_sum.clamp(0, 1)[:, None]
             pbr = out.rgb_surf * alpha
-            if getattr(model, "background", None) is not None:
-                pbr = pbr + (1 - alpha) * model.background(rb.origins, rb.directions)
+            if out.background is not None:
+                pbr = pbr + (1 - alpha) * out.background
             s = out.surf
             albedo, metal = s["albedo"], s["metallic"]
             if not shading.specular:  # lobe dropped: shaded as a dielectric diffuse (metallic 0)

@@ -135,6 +135,12 @@ def weighted_mean(x: Tensor, weight: Tensor | None) -> Tensor:
     return (x * weight).sum() / weight.sum().clamp_min(1e-12)
 
 
+def mean_where(x: Tensor, keep: Tensor) -> Tensor:
+    """``sum_r x_r keep_r / max(1, sum_r keep_r)``: the mean of ``x [R]`` over the rays ``keep [R]``
+    (bool), 0 when none is kept."""
+    return (x * keep).sum() / keep.sum().clamp_min(1.0)
+
+
 def mask_bce(weight_sum: Tensor, mask: Tensor, ray_weight: Tensor | None = None) -> Tensor:
     """``BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)``, finite for any weight sum: ``[R], [R] -> []``.
 
@@ -171,45 +177,32 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
     L["loss_eik"] = (weighted_mean(out.eikonal, out.eikonal_weight)
                      if (cfg.w_eikonal > 0 and out.eikonal.numel()) else zero)
     L["loss_hess"] = out.hessian.mean() if (cfg.w_hessian > 0 and out.hessian.numel()) else zero
+    s = out.surf
+    on_surf = surf_rays > 0.5
+    lit = on_surf & ~rays.unlit if rays.unlit is not None else on_surf
     if cfg.w_light > 0:
-        keep = surf_rays > 0.5
-        s = out.surf
-        L["loss_light"] = light_variance_loss(s["x"][keep], s["normal"][keep], s["light_dir"][keep],
-                                              s["intensity"][keep], cfg.lambda3, cfg.lambda4, cfg.lambda5)
+        L["loss_light"] = light_variance_loss(s["x"][on_surf], s["normal"][on_surf], s["light_dir"][on_surf],
+                                              s["intensity"][on_surf], cfg.lambda3, cfg.lambda4, cfg.lambda5)
     else:
         L["loss_light"] = zero
-    if cfg.w_albedo_smooth > 0 and "albedo_jitter" in out.surf:
-        keep = surf_rays > 0.5
-        diff = (out.surf["albedo"] - out.surf["albedo_jitter"]).abs().mean(-1)
-        L["loss_albedo_smooth"] = (diff * keep).sum() / keep.sum().clamp_min(1.0)
-    else:
-        L["loss_albedo_smooth"] = zero
+    L["loss_albedo_smooth"] = zero
+    if cfg.w_albedo_smooth > 0 and "albedo_jitter" in s:
+        L["loss_albedo_smooth"] = mean_where((s["albedo"] - s["albedo_jitter"]).abs().mean(-1), on_surf)
     L["loss_albedo_flat"] = zero
-    if cfg.w_albedo_flat > 0 and not specular:
-        lit = surf_rays > 0.5
-        if rays.unlit is not None:
-            lit = lit & ~rays.unlit
-        if lit.sum() >= 2:
-            lum = out.surf["albedo"][lit].mean(-1)
-            L["loss_albedo_flat"] = (lum / lum.detach().mean().clamp_min(1e-4) - 1.0).abs().mean()
+    if cfg.w_albedo_flat > 0 and not specular and lit.sum() >= 2:
+        lum = s["albedo"][lit].mean(-1)
+        L["loss_albedo_flat"] = (lum / lum.detach().mean().clamp_min(1e-4) - 1.0).abs().mean()
     L["loss_brdf_smooth"] = zero
-    if cfg.w_brdf_smooth > 0 and "roughness_jitter" in out.surf:
-        keep = surf_rays > 0.5
-        s = out.surf
+    if cfg.w_brdf_smooth > 0 and "roughness_jitter" in s:
         diff = (s["roughness"] - s["roughness_jitter"]).abs() + (s["metallic"] - s["metallic_jitter"]).abs()
-        L["loss_brdf_smooth"] = (diff * keep).sum() / keep.sum().clamp_min(1.0)
+        L["loss_brdf_smooth"] = mean_where(diff, on_surf)
     L["loss_material_range"] = zero
-    if cfg.w_material_range > 0 and "material_logits" in out.surf:
-        keep = surf_rays > 0.5
-        over = (out.surf["material_logits"].abs() - cfg.material_logit_max).clamp_min(0.0).mean(-1)
-        L["loss_material_range"] = (over * keep).sum() / keep.sum().clamp_min(1.0)
+    if cfg.w_material_range > 0 and "material_logits" in s:
+        over = (s["material_logits"].abs() - cfg.material_logit_max).clamp_min(0.0).mean(-1)
+        L["loss_material_range"] = mean_where(over, on_surf)
     L["loss_metallic_unseen"] = zero
-    if cfg.w_metallic_unseen > 0 and "lobe_share" in out.surf:
-        lit = surf_rays > 0.5
-        if rays.unlit is not None:
-            lit = lit & ~rays.unlit
-        unseen = out.surf["metallic"] * (1.0 - out.surf["lobe_share"].detach())
-        L["loss_metallic_unseen"] = (unseen * lit).sum() / lit.sum().clamp_min(1.0)
+    if cfg.w_metallic_unseen > 0 and "lobe_share" in s:
+        L["loss_metallic_unseen"] = mean_where(s["metallic"] * (1.0 - s["lobe_share"].detach()), lit)
     L["loss_mask"] = (mask_bce(out.weight_sum, rays.mask, rays.weight)
                       if (use_mask and rays.mask is not None and cfg.w_mask > 0) else zero)
     L["loss"] = (cfg.w_r * (L["loss_r"] + L["loss_bg"]) + cfg.lambda1_surf * L["loss_surf"] + cfg.lambda2_vol * L["loss_vol"]

@@ -11,6 +11,8 @@ from nepf_core.fields.background import BackgroundConfig, BackgroundVolume, cont
 from nepf_core.losses import LossConfig, compute_losses
 from nepf_core.train.rules.masks import decide_masks, lit_outside_masks
 
+from loss_fixtures import render_output
+
 
 def test_contract_by_hand():
     x = torch.tensor([[0.5, 0.0, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, -4.0], [3.0, 4.0, 0.0]])
@@ -75,17 +77,6 @@ def test_lit_outside_masks_and_the_decision():
     assert not use and bg
 
 
-class _Out:
-    def __init__(self, rgb_r):
-        R = rgb_r.shape[0]
-        self.rgb_r = self.rgb_vol = self.rgb_surf = rgb_r
-        self.weight_sum = torch.ones(R)
-        self.w_max = torch.ones(R)
-        self.eikonal = self.hessian = torch.zeros(0)
-        self.eikonal_weight = None
-        self.surf = {}
-
-
 def test_background_loss_by_hand():
     """L_bg is the sRGB L1 over the rays outside the masks alone; the foreground L_r is unchanged."""
     from nepf_core.rays import RayBatch
@@ -94,10 +85,10 @@ def test_background_loss_by_hand():
     mask = torch.tensor([1.0, 1.0, 0.0, 0.0])
     rays = RayBatch(origins=torch.zeros(4, 3), directions=torch.ones(4, 3), rgb=gt, mask=mask)
     cfg = LossConfig(lambda1_surf=0, lambda2_vol=0, w_eikonal=0, w_hessian=0, w_light=0, w_mask=0)
-    L = compute_losses(_Out(pred), rays, cfg, use_mask=True, background=True)
+    L = compute_losses(render_output(4, rgb=pred), rays, cfg, use_mask=True, background=True)
     assert float(L["loss_r"]) == pytest.approx(3 / 6)        # foreground: one ray off by 1 in 3 channels
     assert float(L["loss_bg"]) == pytest.approx(2 / 6)       # outside: one ray off by 1 in 2 channels
     assert float(L["loss"]) == pytest.approx(3 / 6 + 2 / 6)
-    L = compute_losses(_Out(pred), rays, cfg, use_mask=True, background=False)
+    L = compute_losses(render_output(4, rgb=pred), rays, cfg, use_mask=True, background=False)
     assert float(L["loss_bg"]) == 0.0
 

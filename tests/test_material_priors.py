@@ -7,16 +7,7 @@ import torch
 from nepf_core.losses import LossConfig, compute_losses
 from nepf_core.rays import RayBatch
 
-
-class _Out:
-    def __init__(self, surf, R):
-        z = torch.zeros(R, 3)
-        self.rgb_r = self.rgb_vol = self.rgb_surf = z
-        self.weight_sum = torch.ones(R)
-        self.w_max = torch.ones(R)
-        self.eikonal = self.hessian = torch.zeros(0)
-        self.eikonal_weight = None
-        self.surf = surf
+from loss_fixtures import render_output
 
 
 def _cfg(**kw):
@@ -32,7 +23,7 @@ def test_material_range_by_hand():
     surf = {"material_logits": logits.clone().requires_grad_(True)}
     rays = RayBatch(origins=torch.zeros(3, 3), directions=torch.ones(3, 3), rgb=torch.zeros(3, 3),
                     mask=torch.tensor([1.0, 1.0, 0.0]))
-    L = compute_losses(_Out(surf, 3), rays, _cfg(w_material_range=2.0), use_mask=True)
+    L = compute_losses(render_output(3, surf=surf), rays, _cfg(w_material_range=2.0), use_mask=True)
     assert float(L["loss_material_range"].detach()) == pytest.approx((0.7 + 0.0) / 2)
     assert float(L["loss"].detach()) == pytest.approx(2.0 * 0.35)
     L["loss"].backward()
@@ -48,7 +39,7 @@ def test_metallic_unseen_by_hand():
     surf = {"metallic": metallic, "lobe_share": share}
     rays = RayBatch(origins=torch.zeros(4, 3), directions=torch.ones(4, 3), rgb=torch.zeros(4, 3),
                     mask=torch.ones(4), unlit=torch.tensor([False, False, False, True]))
-    L = compute_losses(_Out(surf, 4), rays, _cfg(w_metallic_unseen=1.0), use_mask=True)
+    L = compute_losses(render_output(4, surf=surf), rays, _cfg(w_metallic_unseen=1.0), use_mask=True)
     # (0.8 * 1 + 0.8 * 0 + 0.5 * 0.5) / 3 lit rays
     assert float(L["loss_metallic_unseen"].detach()) == pytest.approx((0.8 + 0.25) / 3)
     L["loss"].backward()
@@ -67,7 +58,7 @@ def test_training_render_feeds_both_priors():
     model = NePFModel(cfg.model)
     o = torch.tensor([[0.0, 0.0, -2.5]]).repeat(32, 1)
     d = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0]]) + 0.1 * torch.randn(32, 3), dim=-1)
-    out = render_rays(model, RayBatch(o, d), cfg.render, train=True)
+    out = render_rays(model, RayBatch(o, d), cfg.render, train=True, need_lobe_share=True)
     s = out.surf
     z = s["material_logits"]
     assert z.shape == (32, 5)
@@ -77,7 +68,7 @@ def test_training_render_feeds_both_priors():
     assert ((s["lobe_share"] >= 0) & (s["lobe_share"] <= 1)).all()
     # the lobe rule's statistics keep their own cadence: only on renders that ask for them
     assert "specular" not in s and "diffuse_only" not in s
-    out = render_rays(model, RayBatch(o, d), cfg.render, train=True, need_surface_extras=True)
+    out = render_rays(model, RayBatch(o, d), cfg.render, train=True, need_surface_extras=True, need_lobe_share=True)
     assert torch.equal(out.surf["specular"], out.surf["lobe_share"])
     with torch.no_grad():
         out = render_rays(model, RayBatch(o, d), cfg.render, train=False)

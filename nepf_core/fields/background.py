@@ -35,6 +35,7 @@ from torch import Tensor, nn
 
 from nepf_core.fields.grid_encoding import GridConfig, MultiResGrid
 from nepf_core.mlp import MLPConfig, build_mlp, encoding_dim, positional_encoding
+from nepf_core.render.neus import weights_from_alpha
 
 
 @dataclass
@@ -107,5 +108,4 @@ class BackgroundVolume(nn.Module):
         delta = (c[:, 1:] - c[:, :-1]).norm(dim=-1)
         delta = torch.cat([delta, torch.full_like(delta[:, :1], 1e10)], -1)
         alpha = 1.0 - torch.exp(-sigma * delta)
-        trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1.0 - alpha[:, :-1] + 1e-10], -1), -1)
-        return ((trans * alpha)[..., None] * rgb).sum(1)
+        return (weights_from_alpha(alpha)[..., None] * rgb).sum(1)

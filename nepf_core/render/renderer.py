@@ -126,9 +126,12 @@ class RenderOutput:
     """``|H f|_F`` (Frobenius norm of the SDF Hessian) on a subset of samples, ``[Q]`` (may be empty)."""
     surf: dict = field(default_factory=dict)
     """At the max-weight sample: x, normal, light_dir, intensity, albedo, roughness,
-    metallic; in training renders ``lobe_share`` (no grad: the specular lobe's share of L_surf) and
-    ``material_logits``; with ``need_surface_extras`` also (no grad) specular (the same share),
+    metallic; in training renders ``material_logits``; with ``need_lobe_share`` ``lobe_share``
+    (no grad: the specular lobe's share of L_surf); with ``need_surface_extras`` also (no grad) specular (the same share),
     specular_abs and diffuse_only (``[R, 3]``, L_surf without the lobe)."""
+    background: Tensor | None = None
+    """``[R, 3]`` the background volume's colour of each ray (None without one), composited into
+    ``rgb_r`` and ``rgb_vol`` behind the object."""
     n_samples: int = 0
     n_head_evals: int = 0
     inv_s: float = 0.0
@@ -176,12 +179,13 @@ def _expand(t: Tensor, S: int) -> Tensor:
 
 def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_anneal: float = 1.0,
                 generator: torch.Generator | None = None, need_surface_extras: bool = False,
-                shading: Shading | None = None) -> RenderOutput:
+                need_lobe_share: bool = False, shading: Shading | None = None) -> RenderOutput:
     """Render ``rays`` with ``model`` (a :class:`nepf_core.model.NePFModel`).
 
     Shapes: rays of length ``R``; returns :class:`RenderOutput` with ``[R, 3]`` colours.
     ``shading``: the shading model in effect (a trained run's: ``RunState.shading()``); None:
-    ``Shading(specular=cfg.specular)``, the configured start.
+    ``Shading(specular=cfg.specular)``, the configured start. ``need_lobe_share``: also return
+    ``surf["lobe_share"]`` (for :attr:`nepf_core.losses.LossConfig.w_metallic_unseen`).
     """
     shading = shading if shading is not None else Shading(specular=cfg.specular)
     o, d = rays.origins, rays.directions
@@ -272,6 +276,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     rgb_r = (w3 * rad_full.reshape(R, S, 3)).sum(1)
     rgb_vol = (w3 * pbr_full.reshape(R, S, 3)).sum(1)
     rgb_surf = pbr_full[flat_max]
+    bg = None
     if getattr(model, "background", None) is not None:
         bg = model.background(o, d, perturb=train and cfg.perturb, generator=generator)
         rgb_r = rgb_r + (1.0 - weight_sum)[:, None] * bg
@@ -308,7 +313,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
                             enabled=cfg.amp_heads and xj.device.type == "cuda"):
             a_j, r_j, m_j = model.material(xj, surf["normal"].detach(), fj)
             surf["albedo_jitter"], surf["roughness_jitter"], surf["metallic_jitter"] = a_j.float(), r_j.float(), m_j.float()
-    if need_surface_extras or train:
+    if need_surface_extras or need_lobe_share:
         with torch.no_grad():
             diffuse_only = bsdf.shade(surf["normal"], surf["light_dir"], -d, surf["albedo"],
                                       surf["roughness"][:, None], surf["metallic"][:, None],
@@ -316,12 +321,13 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
                                       kind=cfg.bsdf_kind)
             total = rgb_surf.detach().sum(-1)
             share = (total - diffuse_only.sum(-1)).clamp_min(0) / total.clamp_min(1e-6)
-            surf["lobe_share"] = share   # every training step: LossConfig.w_metallic_unseen
+            if need_lobe_share:
+                surf["lobe_share"] = share
             if need_surface_extras:      # the lobe rule's checks only (their cadence is the rule's)
                 surf["specular"] = share
                 surf["specular_abs"] = (rgb_surf.detach() - diffuse_only).clamp_min(0).mean(-1)
                 surf["diffuse_only"] = diffuse_only
     depth = (weights * mid).sum(-1)
     return RenderOutput(rgb_r=rgb_r, rgb_vol=rgb_vol, rgb_surf=rgb_surf, weight_sum=weight_sum, w_max=w_max,
-                        depth=depth, eikonal=eikonal, hessian=hess, surf=surf, n_samples=int(P),
+                        depth=depth, eikonal=eikonal, hessian=hess, surf=surf, background=bg, n_samples=int(P),
                         n_head_evals=int(sel_idx.shape[0]), inv_s=float(inv_s.detach()), eikonal_weight=eik_w)

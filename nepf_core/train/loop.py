@@ -212,7 +212,8 @@ class TrainingRun:
         rays = self.adapt.thin_empty_rays(model, rays, self.step, generator=self.gen)
         self._evidence = self.adapt.wants_evidence(self.step)
         out = render_rays(model, rays, self.run_cfg.render, train=True, cos_anneal=self.anneal, generator=self.gen,
-                          need_surface_extras=self._evidence, shading=rs.shading())
+                          need_surface_extras=self._evidence, need_lobe_share=self.cfg.loss.w_metallic_unseen > 0,
+                          shading=rs.shading())
         losses = compute_losses(out, rays, rs.loss_config(self.cfg.loss), use_mask=rs.use_mask_loss,
                                 specular=rs.specular, background=rs.background)
         loss = losses["loss"]
