@@ -60,19 +60,30 @@ def test_training_render_feeds_both_priors():
     model = NePFModel(cfg.model)
     o = torch.tensor([[0.0, 0.0, -2.5]]).repeat(32, 1)
     d = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0]]) + 0.1 * torch.randn(32, 3), dim=-1)
-    out = render_rays(model, RayBatch(o, d), cfg.render, train=True, need_lobe_split=True)
+    out = render_rays(model, RayBatch(o, d), cfg.render, train=True, need_metal_hypothesis=True)
     s = out.surf
     z = s["material_logits"]
     assert z.shape == (32, 5)
     assert torch.allclose(torch.sigmoid(z[:, :3]), s["albedo"], atol=1e-6)
     assert torch.allclose(torch.sigmoid(z[:, 3]), s["roughness"], atol=1e-6)
     assert torch.allclose(torch.sigmoid(z[:, 4]), s["metallic"], atol=1e-6)
-    assert torch.allclose(s["lobe_rgb"] + s["diffuse_rgb"], out.rgb_surf.detach(), atol=1e-6)
-    assert (s["diffuse_rgb"] >= 0).all()
+    # the shading is linear in the (1 - m) diffuse and the F0 = lerp(0.04, albedo, m) lobe, so the
+    # render at metallic 0 (diffuse + a 0.04 lobe) minus the diffuse alone is a 0.04-lobe that,
+    # with a white albedo, is 0.04 of the metal's lobe; here: every term non-negative and the
+    # metal hypothesis has no diffuse (its colour is zero where the lobe is)
+    assert (s["dielectric_diffuse_rgb"] >= 0).all() and (s["metal_lobe_rgb"] >= 0).all()
+    m1 = torch.ones_like(s["metallic"])[:, None]
+    from nepf_core import bsdf
+    want = bsdf.shade(s["normal"], s["light_dir"], -d, s["albedo"], s["roughness"][:, None], m1,
+                      s["intensity"][:, None], lambertian=cfg.render.lambertian, kind=cfg.render.bsdf_kind)
+    assert torch.allclose(s["metal_lobe_rgb"], want)
+    want = bsdf.shade(s["normal"], s["light_dir"], -d, s["albedo"], s["roughness"][:, None], 0 * m1,
+                      s["intensity"][:, None], lambertian=cfg.render.lambertian, specular=False, kind=cfg.render.bsdf_kind)
+    assert torch.allclose(s["dielectric_diffuse_rgb"], want)
     # the lobe rule's statistics keep their own cadence: only on renders that ask for them
     assert "specular" not in s and "diffuse_only" not in s
-    out = render_rays(model, RayBatch(o, d), cfg.render, train=True, need_surface_extras=True, need_lobe_split=True)
-    assert torch.equal(out.surf["diffuse_only"], out.surf["diffuse_rgb"])
+    out = render_rays(model, RayBatch(o, d), cfg.render, train=True, need_surface_extras=True, need_metal_hypothesis=True)
+    assert "specular" in out.surf and "metal_lobe_rgb" in out.surf
     with torch.no_grad():
         out = render_rays(model, RayBatch(o, d), cfg.render, train=False)
     assert "material_logits" not in out.surf
@@ -80,17 +91,21 @@ def test_training_render_feeds_both_priors():
 
 def test_lobe_confirmation_by_hand():
     from nepf_core.train.metal_evidence import lobe_confirmation
-    lobe = torch.tensor([[0.6, 0.6, 0.6],       # a metal's highlight, the pixel holds all of it
-                         [0.6, 0.6, 0.6],       # the same lobe, the pixel holds a 0.04/0.6 share of it
-                         [0.3, 0.3, 0.3],       # the pixel is brighter still than diffuse + lobe: rho clips to 1
-                         [0.0, 0.0, 0.0],       # no lobe: no evidence, whatever the pixel
-                         [0.2, 0.2, 0.2]])      # the pixel darker than the diffuse: rho clips to 0
+    metal = torch.tensor([[0.6, 0.6, 0.6],      # a metal's highlight, the pixel holds all of it
+                          [0.6, 0.6, 0.6],      # the same lobe, the pixel holds only a dielectric's 0.04 / 0.6 of it
+                          [0.3, 0.3, 0.3],      # the pixel brighter still than diffuse + lobe: rho clips to 1
+                          [0.0, 0.0, 0.0],      # no lobe: no evidence, whatever the pixel
+                          [0.2, 0.2, 0.2]])     # the pixel darker than the diffuse: rho clips to 0
     diffuse = torch.tensor([[0.2, 0.2, 0.2], [0.2, 0.2, 0.2], [0.1, 0.1, 0.1], [0.5, 0.5, 0.5], [0.3, 0.3, 0.3]])
     target = torch.tensor([[0.8, 0.8, 0.8], [0.24, 0.24, 0.24], [0.9, 0.9, 0.9], [0.9, 0.9, 0.9], [0.1, 0.1, 0.1]])
-    e = lobe_confirmation(lobe, diffuse, target)
-    # share s = 0.6 / 0.8, rho = 1; s = 0.75, rho = 0.04 / 0.6; s = 0.3 / 0.4, rho = 1; 0; s = 0.4, rho = 0
+    e = lobe_confirmation(metal, diffuse, target)
+    # q = 0.6 / 0.8, rho = 1; q = 0.75, rho = 0.04 / 0.6; q = 0.3 / 0.4, rho = 1; 0; q = 0.4, rho = 0
     want = torch.tensor([0.75, 0.75 * 0.04 / 0.6, 0.75, 0.0, 0.0])
     assert torch.allclose(e, want, atol=1e-6)
+    # a colour-weighted projection: a gold lobe, the pixel holds half of it in every channel
+    gold = torch.tensor([[0.9, 0.6, 0.2]])
+    e = lobe_confirmation(gold, torch.zeros(1, 3), 0.5 * gold)
+    assert float(e) == pytest.approx(1.0 * 0.5)
 
 
 def test_metal_evidence_grid_keeps_a_decaying_maximum():
@@ -119,10 +134,11 @@ def test_evidence_lifts_the_prior_in_a_confirmed_region_only():
     from nepf_core.train.metal_evidence import MetalEvidence, lobe_confirmation
     ev = MetalEvidence(resolution=8)
     metal_x, dark_x = torch.tensor([[0.5, 0.5, 0.5]]), torch.tensor([[-0.5, -0.5, -0.5]])
-    lobe, diffuse = torch.tensor([[0.9, 0.7, 0.3]]), torch.tensor([[0.01, 0.01, 0.01]])
-    # highlight view: the metal's pixel holds its lobe; the dark texture's pixel only a dielectric's 0.04
-    e_metal = lobe_confirmation(lobe, diffuse, diffuse + lobe)
-    e_dark = lobe_confirmation(lobe, diffuse, diffuse + 0.04 / 0.6 * lobe)
+    # highlight view of both, albedo (0.9, 0.7, 0.3) under both hypotheses: the metal's pixel holds
+    # a metal's lobe; the other pixel a dielectric's (0.04 / albedo of it) over its diffuse
+    lobe, diffuse = torch.tensor([[0.9, 0.7, 0.3]]), torch.tensor([[0.01, 0.008, 0.003]])
+    e_metal = lobe_confirmation(lobe, diffuse, lobe)
+    e_dark = lobe_confirmation(lobe, diffuse, diffuse + 0.04 * torch.ones(1, 3))   # a white 0.04 highlight
     ev.observe(torch.cat([metal_x, dark_x]), torch.cat([e_metal, e_dark]), torch.tensor([True, True]))
     # a later view of both regions away from the highlight: the per-ray share would be 0 in both
     metallic = torch.tensor([0.9, 0.9]).requires_grad_(True)
@@ -131,4 +147,6 @@ def test_evidence_lifts_the_prior_in_a_confirmed_region_only():
     L = compute_losses(render_output(2, surf=surf), rays, _cfg(w_metallic_unseen=1.0), use_mask=True)
     L["loss"].backward()
     g = metallic.grad
-    assert float(g[0]) < 0.02 / 2 and float(g[1]) > 0.9 / 2
+    # e_metal = q rho = (1.9 / 1.921) (1 - <d, l> / <l, l>) = 0.978; e_dark = q 0.04 * 1.9 / 1.39 = 0.054
+    assert float(g[0]) == pytest.approx((1 - 1.9 / 1.921 * (1 - 0.0155 / 1.39)) / 2, rel=1e-3)
+    assert float(g[1]) == pytest.approx((1 - 1.9 / 1.921 * 0.04 * 1.9 / 1.39) / 2, rel=1e-3)

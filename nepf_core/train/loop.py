@@ -216,7 +216,7 @@ class TrainingRun:
         rays = self.adapt.thin_empty_rays(model, rays, self.step, generator=self.gen)
         self._evidence = self.adapt.wants_evidence(self.step)
         out = render_rays(model, rays, self.run_cfg.render, train=True, cos_anneal=self.anneal, generator=self.gen,
-                          need_surface_extras=self._evidence, need_lobe_split=self.metal_evidence is not None,
+                          need_surface_extras=self._evidence, need_metal_hypothesis=self.metal_evidence is not None,
                           shading=rs.shading())
         if self.metal_evidence is not None:
             out.surf["metal_evidence"] = self.metal_evidence.observe_render(out, rays, rs.use_mask_loss)

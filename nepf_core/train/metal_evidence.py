@@ -7,18 +7,22 @@ the views around a point, so in most views its share is small and a per-ray prio
 metal dielectric (bunny_metal, docs/FAST.md). The evidence must be gathered over views, per
 region of the surface.
 
-Per lit surface ray ``r`` (max-weight point ``x_r``, linear colours ``[R, 3]``): the shaded
-lobe ``l_r = c_surf - c_diffuse`` (what the GGX lobe adds at the current materials), its share
-``s_r = sum(l_r) / sum(c_surf)``, and the pixel's excess over the current diffuse
-``t_r - c_diffuse``. The images confirm the lobe by
+Per lit surface ray ``r`` (max-weight point ``x_r``, linear colours ``[R, 3]``), the point is
+shaded under two hypotheses at its current albedo, roughness, normal and light: as a metal
+(``l_r``, metallic 1: the GGX lobe with ``F0 = albedo``, no diffuse) and as a plain diffuse
+(``d_r``, metallic 0, no lobe). Then
 
-    rho_r = clip(<t_r - c_diffuse, l_r> / <l_r, l_r>, 0, 1)        (how much of the lobe is there)
-    e_r   = s_r * rho_r                                            (and how much it matters here)
+    q_r   = sum(l_r) / (sum(l_r) + sum(d_r))                    (would a metal's lobe show here?)
+    rho_r = clip(<t_r - d_r, l_r> / <l_r, l_r>, 0, 1)           (how much of it the pixel t_r holds)
+    e_r   = q_r * rho_r
 
-A real metal seen near its highlight: the pixel holds the lobe (``rho ~ 1``) and the lobe
-carries the colour (``s ~ 1``), so ``e ~ 1``. A dark dielectric texture passed off as metal: its
-lobe ``lerp(0.04, a, m) D G / 4..`` is much brighter than the 0.04 one the pixel holds, so
-``rho ~ 0.04 / F0`` is small even where the lobe is seen. A lobe no view sees: ``s ~ 0``.
+Both are evaluated whatever the current metallic, so a metal that starts dielectric (metallic
+near 0, where its current lobe is the 0.04 one and shows nowhere) still gathers evidence. A real
+metal seen near its highlight: a metal's lobe dominates there (``q ~ 1``) and the pixel holds
+it (``rho ~ 1``): ``e ~ 1``. A bright dielectric, or a dark texture passed off as a darkened
+bright metal: a metal of that albedo would show a lobe ``a / 0.04`` times brighter than the
+pixel's, ``rho ~ 0.04 / a`` is small even where the lobe is seen. A lobe no view sees (roughness
+near 0, the highlight a point that no pixel catches): ``q ~ 0``.
 
 The evidence is kept on a ``R^3`` grid over ``[-bound, bound]^3`` (the normalised frame) as a
 decaying maximum: every step ``E <- decay * E``, then ``E[cell(x_r)] <- max(E, e_r)``;
@@ -33,15 +37,15 @@ import torch
 from torch import Tensor
 
 
-def lobe_confirmation(lobe: Tensor, diffuse: Tensor, target: Tensor) -> Tensor:
-    """``e_r = s_r rho_r`` (module docstring) for ``[R, 3]`` linear colours: the shaded lobe,
-    the shaded diffuse and the pixel. ``[R]`` in [0, 1]; 0 where the lobe is (numerically) absent."""
-    total = (lobe + diffuse).sum(-1)
-    share = lobe.sum(-1).clamp_min(0) / total.clamp_min(1e-6)
-    ll = (lobe * lobe).sum(-1)
-    rho = ((target - diffuse) * lobe).sum(-1) / ll.clamp_min(1e-12)
+def lobe_confirmation(metal_lobe: Tensor, diffuse: Tensor, target: Tensor) -> Tensor:
+    """``e_r = q_r rho_r`` (module docstring) for ``[R, 3]`` linear colours: the point shaded as
+    a metal, shaded as a plain diffuse, and the pixel. ``[R]`` in [0, 1]; 0 where the lobe is
+    (numerically) absent."""
+    q = metal_lobe.sum(-1).clamp_min(0) / (metal_lobe + diffuse).sum(-1).clamp_min(1e-6)
+    ll = (metal_lobe * metal_lobe).sum(-1)
+    rho = ((target - diffuse) * metal_lobe).sum(-1) / ll.clamp_min(1e-12)
     rho = torch.where(ll > 1e-12, rho, torch.zeros_like(rho)).clamp(0.0, 1.0)
-    return (share * rho).clamp(0.0, 1.0)
+    return (q * rho).clamp(0.0, 1.0)
 
 
 class MetalEvidence:
@@ -72,13 +76,13 @@ class MetalEvidence:
 
     @torch.no_grad()
     def observe_render(self, out, rays, use_mask: bool) -> Tensor:
-        """One training render (``need_lobe_split``): observe its lit surface rays (the rays
+        """One training render (``need_metal_hypothesis``): observe its lit surface rays (the rays
         ``L_unseen`` averages over: mask, or ``sum w > 0.5`` without one, less the unlit pixels)
         and return ``e(x) [R]`` at every ray's surface point, for ``surf["metal_evidence"]``."""
         s = out.surf
         on_surf = (rays.mask > 0.5) if (use_mask and rays.mask is not None) else (out.weight_sum.detach() > 0.5)
         lit = on_surf & ~rays.unlit if rays.unlit is not None else on_surf
-        self.observe(s["x"], lobe_confirmation(s["lobe_rgb"], s["diffuse_rgb"], rays.rgb), lit)
+        self.observe(s["x"], lobe_confirmation(s["metal_lobe_rgb"], s["dielectric_diffuse_rgb"], rays.rgb), lit)
         return self.lookup(s["x"])
 
     def lookup(self, x: Tensor) -> Tensor:
