@@ -14,7 +14,7 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_mask  = w_mask * BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)
     L_bsm   = w_brdf_smooth * mean (|r(x*) - r(x* + eps)| + |m(x*) - m(x* + eps)|)   (off in paper)
     L_range = w_material_range * mean_surf mean_k relu(|z_k| - z_max)   (z: material logits; off in paper)
-    L_unseen = w_metallic_unseen * mean_lit m (1 - e)   (e: per-region evidence of the lobe, stop-grad; off in paper)
+    L_unseen = w_metallic_unseen * mean_lit m (1 - s)   (s: the lobe's share of L_surf, stop-grad; off in paper)
     L_bg    = w_r * mean_{mask = 0} | srgb(L_r) - srgb(L_gt) |   (masks and a background model)
 
 With masks, colour terms average over foreground rays only (NeuS); with masks and a background
@@ -86,13 +86,12 @@ class LossConfig:
     """``z_max`` of ``w_material_range``: sigmoid(3) = 0.953, so every channel keeps a slope of at
     least 0.045; roughness >= 0.047 still gives a near-mirror glTF lobe (alpha = 3e-3)."""
     w_metallic_unseen: float = 0.0
-    """Metallic only where the images confirm its lobe: ``mean_lit m (1 - e(x))`` over lit surface
-    rays, ``e(x)`` in [0, 1] the evidence gathered over views for the point's region
-    (``surf["metal_evidence"]``, stop-grad, :mod:`nepf_core.train.metal_evidence`). A metal whose
-    lobe the views never see (roughness near 0, so the highlight is a point that no pixel
-    catches) only darkens its diffuse by ``(1 - m)``, which the albedo can do as well; the images
-    cannot tell the two apart, and without a prior the texture goes into metallic. Where some
-    view sees the lobe and its pixel holds it (a real metal: ``e ~ 1``) the term vanishes."""
+    """Metallic only where its lobe is seen: ``mean_lit m (1 - s)`` with ``s`` the specular lobe's
+    share of the shaded surface colour (stop-grad, ``surf["lobe_share"]``), over lit surface rays.
+    A metal whose lobe the views never see (roughness near 0, so the highlight is a point that no
+    pixel catches) only darkens its diffuse by ``(1 - m)``, which the albedo can do as well; the
+    images cannot tell the two apart, and without a prior the texture goes into metallic. Where
+    the lobe carries the colour (a real metal: ``s ~ 1``) the term vanishes."""
     w_mask: float = 0.1
     """Mask BCE weight (NeuS's value); only applied when the scene has masks."""
     color_space: str = "srgb"
@@ -202,8 +201,8 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
         over = (s["material_logits"].abs() - cfg.material_logit_max).clamp_min(0.0).mean(-1)
         L["loss_material_range"] = mean_where(over, on_surf)
     L["loss_metallic_unseen"] = zero
-    if cfg.w_metallic_unseen > 0 and "metal_evidence" in s:
-        L["loss_metallic_unseen"] = mean_where(s["metallic"] * (1.0 - s["metal_evidence"].detach()), lit)
+    if cfg.w_metallic_unseen > 0 and "lobe_share" in s:
+        L["loss_metallic_unseen"] = mean_where(s["metallic"] * (1.0 - s["lobe_share"].detach()), lit)
     L["loss_mask"] = (mask_bce(out.weight_sum, rays.mask, rays.weight)
                       if (use_mask and rays.mask is not None and cfg.w_mask > 0) else zero)
     L["loss"] = (cfg.w_r * (L["loss_r"] + L["loss_bg"]) + cfg.lambda1_surf * L["loss_surf"] + cfg.lambda2_vol * L["loss_vol"]

@@ -126,9 +126,8 @@ class RenderOutput:
     """``|H f|_F`` (Frobenius norm of the SDF Hessian) on a subset of samples, ``[Q]`` (may be empty)."""
     surf: dict = field(default_factory=dict)
     """At the max-weight sample: x, normal, light_dir, intensity, albedo, roughness,
-    metallic; in training renders ``material_logits``; with ``need_metal_hypothesis``
-    ``metal_lobe_rgb`` and ``dielectric_diffuse_rgb`` (no grad, ``[R, 3]`` linear: the point
-    shaded with metallic 1, and with metallic 0 and no lobe); with ``need_surface_extras`` also (no grad) specular (the same share),
+    metallic; in training renders ``material_logits``; with ``need_lobe_share`` ``lobe_share``
+    (no grad: the specular lobe's share of L_surf); with ``need_surface_extras`` also (no grad) specular (the same share),
     specular_abs and diffuse_only (``[R, 3]``, L_surf without the lobe)."""
     background: Tensor | None = None
     """``[R, 3]`` the background volume's colour of each ray (None without one), composited into
@@ -180,14 +179,13 @@ def _expand(t: Tensor, S: int) -> Tensor:
 
 def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_anneal: float = 1.0,
                 generator: torch.Generator | None = None, need_surface_extras: bool = False,
-                need_metal_hypothesis: bool = False, shading: Shading | None = None) -> RenderOutput:
+                need_lobe_share: bool = False, shading: Shading | None = None) -> RenderOutput:
     """Render ``rays`` with ``model`` (a :class:`nepf_core.model.NePFModel`).
 
     Shapes: rays of length ``R``; returns :class:`RenderOutput` with ``[R, 3]`` colours.
     ``shading``: the shading model in effect (a trained run's: ``RunState.shading()``); None:
-    ``Shading(specular=cfg.specular)``, the configured start. ``need_metal_hypothesis``: also return
-    ``surf["metal_lobe_rgb"]`` and ``surf["dielectric_diffuse_rgb"]`` (for the evidence behind
-    :attr:`nepf_core.losses.LossConfig.w_metallic_unseen`, :mod:`nepf_core.train.metal_evidence`).
+    ``Shading(specular=cfg.specular)``, the configured start. ``need_lobe_share``: also return
+    ``surf["lobe_share"]`` (for :attr:`nepf_core.losses.LossConfig.w_metallic_unseen`).
     """
     shading = shading if shading is not None else Shading(specular=cfg.specular)
     o, d = rays.origins, rays.directions
@@ -315,7 +313,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
                             enabled=cfg.amp_heads and xj.device.type == "cuda"):
             a_j, r_j, m_j = model.material(xj, surf["normal"].detach(), fj)
             surf["albedo_jitter"], surf["roughness_jitter"], surf["metallic_jitter"] = a_j.float(), r_j.float(), m_j.float()
-    if need_surface_extras or need_metal_hypothesis:
+    if need_surface_extras or need_lobe_share:
         with torch.no_grad():
             diffuse_only = bsdf.shade(surf["normal"], surf["light_dir"], -d, surf["albedo"],
                                       surf["roughness"][:, None], surf["metallic"][:, None],
@@ -323,14 +321,8 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
                                       kind=cfg.bsdf_kind)
             total = rgb_surf.detach().sum(-1)
             share = (total - diffuse_only.sum(-1)).clamp_min(0) / total.clamp_min(1e-6)
-            if need_metal_hypothesis:   # the point shaded as a metal and as a plain diffuse
-                def shade_as(metallic: float, lobe: bool) -> Tensor:
-                    m = torch.full_like(surf["metallic"][:, None], metallic)
-                    return bsdf.shade(surf["normal"], surf["light_dir"], -d, surf["albedo"], surf["roughness"][:, None],
-                                      m, surf["intensity"][:, None], lambertian=cfg.lambertian, specular=lobe,
-                                      kind=cfg.bsdf_kind)
-                surf["metal_lobe_rgb"] = shade_as(1.0, True)
-                surf["dielectric_diffuse_rgb"] = shade_as(0.0, False)
+            if need_lobe_share:
+                surf["lobe_share"] = share
             if need_surface_extras:      # the lobe rule's checks only (their cadence is the rule's)
                 surf["specular"] = share
                 surf["specular_abs"] = (rgb_surf.detach() - diffuse_only).clamp_min(0).mean(-1)

@@ -37,7 +37,6 @@ from nepf_core.train.adaptivity import Adaptivity
 from nepf_core.train.clock import TrainClock
 from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
 from nepf_core.train.hooks import TrainHooks
-from nepf_core.train.metal_evidence import MetalEvidence
 from nepf_core.train.metrics_log import MetricsLog, plot_error_vs_time, write_json_atomic
 from nepf_core.train.result import FitError, FitResult
 from nepf_core.train.rules.config import RuleConfig
@@ -103,7 +102,6 @@ class TrainingRun:
         self.gen = torch.Generator().manual_seed(tc.seed)
         self.ema = ParamEMA(self.model, tc.ema_decay) if tc.ema_decay != 0 else None   # a negative one: ParamEMA says so
         self.sampler = PixelSampler(scene, dev)
-        self.metal_evidence = MetalEvidence(device=dev) if cfg.loss.w_metallic_unseen > 0 else None
         self.unlit_thr, decision = unlit_pixels(scene, cfg.render)
         self.adapt.record(decision)
         if self.model.occupancy is not None:
@@ -137,8 +135,6 @@ class TrainingRun:
             setattr(self.run_state, k, v)
         if self.ema is not None and "ema" in extra:
             self.ema.load_state_dict(extra["ema"])
-        if self.metal_evidence is not None and "metal_evidence" in extra:
-            self.metal_evidence.load_state_dict(extra["metal_evidence"])
         self.say(f"resumed from step {self.step}")
         return float(st["wall_s"])
 
@@ -216,10 +212,8 @@ class TrainingRun:
         rays = self.adapt.thin_empty_rays(model, rays, self.step, generator=self.gen)
         self._evidence = self.adapt.wants_evidence(self.step)
         out = render_rays(model, rays, self.run_cfg.render, train=True, cos_anneal=self.anneal, generator=self.gen,
-                          need_surface_extras=self._evidence, need_metal_hypothesis=self.metal_evidence is not None,
+                          need_surface_extras=self._evidence, need_lobe_share=self.cfg.loss.w_metallic_unseen > 0,
                           shading=rs.shading())
-        if self.metal_evidence is not None:
-            out.surf["metal_evidence"] = self.metal_evidence.observe_render(out, rays, rs.use_mask_loss)
         losses = compute_losses(out, rays, rs.loss_config(self.cfg.loss), use_mask=rs.use_mask_loss,
                                 specular=rs.specular, background=rs.background)
         loss = losses["loss"]
@@ -278,9 +272,6 @@ class TrainingRun:
                     "rays_per_s": self._n_rays / dt, "samples_per_s": self._n_samples / dt,
                     "head_evals": out.n_head_evals, "nonfinite_steps": self.nonfinite,
                     "specular_on": bool(self.run_state.specular)})
-        if "metal_evidence" in out.surf:   # mean evidence at the batch's surface points
-            on = out.weight_sum.detach() > 0.5
-            rec["metal_evidence"] = float(out.surf["metal_evidence"][on].mean()) if bool(on.any()) else 0.0
         rec.update(self.adapt.step_stats())
         self.mlog.write(rec)
         self._t_log, self._n_rays, self._n_samples = self.clock.wall(), 0, 0
@@ -314,8 +305,6 @@ class TrainingRun:
                      "world_from_norm": np.asarray(self.scene.world_from_norm, dtype=np.float64).tolist()}
             if self.ema is not None:
                 extra["ema"] = self.ema.state_dict()
-            if self.metal_evidence is not None:
-                extra["metal_evidence"] = self.metal_evidence.state_dict()
             kw = dict(model=self.model, optimizer=self.optimizer, step=self.step, wall_s=self.clock.wall(),
                       generator=self.gen, extra=extra)
             save_checkpoint(self.dir / "checkpoints" / f"ckpt_{self.step:07d}.pt", **kw)
