@@ -1,0 +1,101 @@
+"""Where a decomposition's albedo error comes from: the shading it did not take.
+
+``python -m bench.shading_report RUN SCENE [--min-albedo 0.5]`` reads a bench run's renders of the
+scene's test views (``RUN/relight_eval/renders/arrays.npz``: albedo, normal, light_dir,
+light_intensity, depth) and the scene's truth (``SCENE/gt/arrays_test.npz``, ``gt/lights.json``,
+the test cameras of ``gt/dtu_test``), and prints, over GT-foreground pixels lit by the training
+light whose GT albedo luminance is at least ``--min-albedo``:
+
+* the angle between the learned light direction ``l(x)`` and the true direction to the light
+  from the recovered surface point (median, 90th percentile);
+* per quintile of the GT shading ``s = t / a`` (the pixel over its GT albedo: irradiance and
+  cosine), the median GT and recovered ``n.l``, the recovered irradiance ``I (n.l)``, and the
+  recovered albedo over the GT one (after one least-squares scale per channel, as the albedo
+  PSNR aligns it).
+
+A recovered albedo that follows the GT shading (low in the dim quintiles, high in the bright
+ones) means the shading went into the albedo: the light field's irradiance is flatter than the
+truth. For a diffuse surface only ``n.l`` is identifiable (``l`` may turn about ``n``), so the
+angle alone is not an error unless ``n.l`` is off too. Needs a DTU-format scene with one
+training light (``../shared/scenes``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+
+def shading_rows(run: Path, scene_dir: Path, min_albedo: float = 0.5) -> dict:
+    import torch
+
+    from nepf_core.rays import PixelSampler
+    from nepf_core.reframe import load_held_out
+
+    st = torch.load(run / "checkpoints" / "latest.pt", map_location="cpu", weights_only=False)
+    wfn = np.asarray(st["extra"]["world_from_norm"], dtype=np.float64)
+    test = load_held_out(scene_dir / "gt" / "dtu_test", wfn)
+    pred = np.load(run / "relight_eval" / "renders" / "arrays.npz")
+    gt = np.load(scene_dir / "gt" / "arrays_test.npz")
+    light = np.asarray(json.loads((scene_dir / "gt" / "lights.json").read_text())["lights"][0]["position_world"])
+    fg = gt["alpha"] > 0.5
+    img = gt["rgb_linear_per_light"][:, 0].astype(np.float32)
+    lit = img.max(-1) > 0.01 * np.percentile(img.max(-1)[fg], 99)
+    alb_gt, alb = gt["albedo"].astype(np.float32), pred["albedo"].astype(np.float32)
+    keep_all = fg & lit
+    scale = (alb_gt[keep_all] * alb[keep_all]).sum(0) / (alb[keep_all] ** 2).sum(0).clip(1e-12)
+    sampler = PixelSampler(test, "cpu")
+    cols = []
+    for v in range(test.n_views):
+        r = sampler.view_rays(v)
+        o = r.origins.numpy().reshape(test.height, test.width, 3)
+        d = r.directions.numpy().reshape(test.height, test.width, 3)
+        x = (o + d * pred["depth"][v].astype(np.float32)) * wfn[0, 0] + wfn[:3, 3]   # world
+        to_light = light - x
+        to_light /= np.linalg.norm(to_light, axis=-1, keepdims=True)
+        keep = keep_all[v] & (alb_gt[v].mean(-1) >= min_albedo)
+        l_pred = pred["light_dir"][v].astype(np.float32)
+        n_pred = pred["normal"][v].astype(np.float32)
+        ndl = (n_pred * l_pred).sum(-1)
+        cols.append(np.stack([
+            np.degrees(np.arccos(np.clip((l_pred * to_light).sum(-1), -1, 1)))[keep],
+            (gt["normal_world"][v].astype(np.float32) * to_light).sum(-1)[keep],
+            ndl[keep],
+            (pred["light_intensity"][v][..., 0].astype(np.float32) * ndl.clip(0))[keep],
+            ((alb[v] * scale).mean(-1) / alb_gt[v].mean(-1).clip(1e-3))[keep],
+            (img[v].mean(-1) / alb_gt[v].mean(-1).clip(1e-3))[keep],
+        ], -1))
+    R = np.concatenate(cols)
+    out = {"pixels": int(len(R)), "light_dir_error_deg_median": float(np.median(R[:, 0])),
+           "light_dir_error_deg_p90": float(np.percentile(R[:, 0], 90)), "quintiles": []}
+    edges = np.percentile(R[:, 5], [0, 20, 40, 60, 80, 100])
+    for i in range(5):
+        s = (R[:, 5] >= edges[i]) & (R[:, 5] <= edges[i + 1])
+        out["quintiles"].append({"gt_shading": [float(edges[i]), float(edges[i + 1])],
+                                 "ndl_gt": float(np.median(R[s, 1])), "ndl": float(np.median(R[s, 2])),
+                                 "irradiance": float(np.median(R[s, 3])),
+                                 "albedo_ratio": float(np.median(R[s, 4]))})
+    return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("scene", type=Path)
+    ap.add_argument("--min-albedo", type=float, default=0.5, help="GT albedo luminance of the pixels kept")
+    a = ap.parse_args(argv)
+    rep = shading_rows(a.run, a.scene, a.min_albedo)
+    print(f"{rep['pixels']} pixels; light direction error: median {rep['light_dir_error_deg_median']:.1f} deg, "
+          f"90th percentile {rep['light_dir_error_deg_p90']:.1f} deg")
+    print("| GT shading | n.l GT | n.l recovered | irradiance I n.l | albedo recovered / GT |")
+    print("|---|---|---|---|---|")
+    for q in rep["quintiles"]:
+        lo, hi = q["gt_shading"]
+        print(f"| {lo:.2f}-{hi:.2f} | {q['ndl_gt']:.2f} | {q['ndl']:.2f} | {q['irradiance']:.2f} | {q['albedo_ratio']:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
