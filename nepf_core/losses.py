@@ -55,8 +55,16 @@ class LossConfig:
     w_light: float = 1e-4
     """Overall light-variance weight (paper: 1e-4)."""
     lambda3: float = 1.0
+    """``|var x - var I|``: the light intensity varies across the batch about as much as the
+    surface points do, no more; this is what keeps a texture out of the intensity (without it,
+    spot_textured's spots went into the light: docs/TRIED.md, ``w_light = 0``)."""
     lambda4: float = 1.0
+    """``|var n - var l|``: the light directions spread as much as the normals. For one distant or
+    point light the true spread is far smaller, so this tilts ``l`` toward ``n``, raises ``n.l`` at
+    grazing points and moves the shading into the albedo (0 in ``fast``; docs/FAST.md, "The light
+    field's direction terms")."""
     lambda5: float = 0.1
+    """``|var x - var l|``: the directions spread as much as the points (0 in ``fast``, as ``lambda4``)."""
     w_albedo_smooth: float = 0.0
     """Albedo smoothness prior at the max-weight points (needs ``RenderConfig.albedo_smooth_sigma
     > 0``); not in the paper. Unlit regions carry no albedo information, so without a prior
