@@ -30,23 +30,23 @@ import numpy as np
 
 
 def shading_rows(run: Path, scene_dir: Path, min_albedo: float = 0.5) -> dict:
-    import torch
-
-    from nepf_core.rays import PixelSampler
+    from nepf_core.rays import PixelSampler, unlit_threshold
     from nepf_core.reframe import load_held_out
+    from nepf_core.relight.metrics import FOREGROUND_ALPHA, channel_scale
+    from nepf_core.train import load_model
 
-    st = torch.load(run / "checkpoints" / "latest.pt", map_location="cpu", weights_only=False)
-    wfn = np.asarray(st["extra"]["world_from_norm"], dtype=np.float64)
+    _model, _cfg, state = load_model(run, "cpu")
+    wfn = np.asarray(state["extra"]["world_from_norm"], dtype=np.float64)
     test = load_held_out(scene_dir / "gt" / "dtu_test", wfn)
     pred = np.load(run / "relight_eval" / "renders" / "arrays.npz")
     gt = np.load(scene_dir / "gt" / "arrays_test.npz")
     light = np.asarray(json.loads((scene_dir / "gt" / "lights.json").read_text())["lights"][0]["position_world"])
-    fg = gt["alpha"] > 0.5
+    fg = gt["alpha"] > FOREGROUND_ALPHA
     img = gt["rgb_linear_per_light"][:, 0].astype(np.float32)
-    lit = img.max(-1) > 0.01 * np.percentile(img.max(-1)[fg], 99)
+    lit = img.max(-1) >= unlit_threshold(img, fg, 0.01)   # the albedo-lit metric's pixels
     alb_gt, alb = gt["albedo"].astype(np.float32), pred["albedo"].astype(np.float32)
     keep_all = fg & lit
-    scale = (alb_gt[keep_all] * alb[keep_all]).sum(0) / (alb[keep_all] ** 2).sum(0).clip(1e-12)
+    scale = channel_scale(alb, alb_gt, keep_all)
     sampler = PixelSampler(test, "cpu")
     cols = []
     for v in range(test.n_views):
