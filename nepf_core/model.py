@@ -36,6 +36,12 @@ class ModelConfig:
     whose images show something outside them) and builds the model with its run state's choice."""
     background_volume: BackgroundConfig = field(default_factory=BackgroundConfig)
     """Its sampling and capacity."""
+    object_halfspace: tuple[float, float, float, float] | None = None
+    """``(n_x, n_y, n_z, c)``: the object lies where ``n . x + c > 0`` (in front of the support plane
+    that fit() found in a capture without masks, :mod:`nepf_core.data.object_region`); the
+    renderer ends the SDF's part of each ray there and the background volume takes the rest, and
+    :class:`ModelFieldQuery` cuts the SDF to it. None: the whole unit sphere. A run decision:
+    fit() builds the model with its run state's value."""
     occupancy_resolution: int = 0
     """Occupancy grid resolution (0: none)."""
 
@@ -110,7 +116,14 @@ class ModelFieldQuery:
         return torch.cat(outs)
 
     def sdf(self, x: Tensor) -> Tensor:
-        return self._chunks(self.model.query_sdf, x)
+        """The SDF; with an object half-space the object's part of it, ``max(f, |x| - 1, -(n . x + c))``
+        (a CSG intersection with the region the renderer gave the SDF: the cut is capped flat)."""
+        f = self._chunks(self.model.query_sdf, x).reshape(-1)
+        hs = self.model.cfg.object_halfspace
+        if hs is None:
+            return f
+        n = torch.as_tensor(hs[:3], dtype=x.dtype, device=x.device)
+        return torch.maximum(torch.maximum(f, torch.linalg.vector_norm(x, dim=-1) - 1.0), -(x @ n + float(hs[3])))
 
     def normal(self, x: Tensor) -> Tensor:
         return self._chunks(self.model.query_normal, x)

@@ -24,7 +24,8 @@ def _scene(has_masks: bool, outside: float = 0.0):
     mask = np.zeros((4, 4), bool)
     mask[:2] = True
     img[mask] = 0.5
-    return SimpleNamespace(has_masks=has_masks, images=[img], masks=[mask] if has_masks else None)
+    return SimpleNamespace(has_masks=has_masks, images=[img], masks=[mask] if has_masks else None,
+                           intrinsics=np.eye(3)[None], c2w=np.eye(4)[None])
 
 
 @pytest.mark.parametrize("has_masks", [True, False])
@@ -39,6 +40,10 @@ def test_mask_and_background_decisions(has_masks):
     assert m["value"] is has_masks and b["value"] is (not has_masks)
     assert m["reason"] and b["reason"]
     assert not named(a, "empty_space_skipping")  # tiny has no occupancy grid
+    # without masks the support plane is looked for; one 4x4 view triangulates nothing
+    regions = named(a, "object_region")
+    assert (not regions) if has_masks else (regions[0]["value"] is False and "too few points" in regions[0]["reason"])
+    assert rs.object_halfspace is None
 
 
 def test_masks_with_a_lit_outside_get_the_background_volume():

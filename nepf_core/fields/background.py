@@ -96,10 +96,13 @@ class BackgroundVolume(nn.Module):
         return 1.0 / ((1.0 - u) / t0[:, None] + u / far[:, None])
 
     def forward(self, o: Tensor, d: Tensor, *, perturb: bool = False,
-                generator: torch.Generator | None = None) -> Tensor:
-        """Background colour of each ray ``[R, 3]`` (linear, in [0, 1])."""
+                generator: torch.Generator | None = None, start: Tensor | None = None) -> Tensor:
+        """Background colour of each ray ``[R, 3]`` (linear, in [0, 1]). ``start [R]``: where the
+        object's region ends before the sphere does (its support plane,
+        :func:`nepf_core.render.sampling.object_segment`); the volume begins there."""
         R, n = o.shape[0], self.cfg.n_samples
-        t = self.sample_distances(sphere_exit(o, d), perturb=perturb, generator=generator)   # [R, n]
+        t0 = sphere_exit(o, d) if start is None else torch.minimum(sphere_exit(o, d), start).clamp_min(1e-3)
+        t = self.sample_distances(t0, perturb=perturb, generator=generator)   # [R, n]
         c = contract(o[:, None, :] + t[..., None] * d[:, None, :])                           # [R, n, 3]
         h = self.density(self.encoding(c.reshape(-1, 3)))
         sigma = F.softplus(h[:, 0]).reshape(R, n)

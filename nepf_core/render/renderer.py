@@ -26,7 +26,7 @@ from nepf_core.fields.gradients import sdf_gradient_autograd, sdf_gradient_centr
 from nepf_core.rays import RayBatch
 from nepf_core.render.neus import (alpha_from_sdf, annealed_cos, max_weight_index, surface_crossing_t,
                                    weights_from_alpha)
-from nepf_core.render.sampling import hierarchical_z, near_far_from_sphere, stratified_z
+from nepf_core.render.sampling import hierarchical_z, object_segment, stratified_z
 
 
 @dataclass
@@ -190,7 +190,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     shading = shading if shading is not None else Shading(specular=cfg.specular)
     o, d = rays.origins, rays.directions
     R = o.shape[0]
-    near, far, hit = near_far_from_sphere(o, d)
+    near, far, hit, cut = object_segment(o, d, model.cfg.object_halfspace)
     sdf_only = model.sdf.sdf
     z = stratified_z(near, far, cfg.n_samples, perturb=train and cfg.perturb, generator=generator)
     z = hierarchical_z(o, d, z, sdf_only, cfg.n_importance, cfg.up_sample_steps)
@@ -278,7 +278,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     rgb_surf = pbr_full[flat_max]
     bg = None
     if getattr(model, "background", None) is not None:
-        bg = model.background(o, d, perturb=train and cfg.perturb, generator=generator)
+        bg = model.background(o, d, perturb=train and cfg.perturb, generator=generator, start=cut)
         rgb_r = rgb_r + (1.0 - weight_sum)[:, None] * bg
         rgb_vol = rgb_vol + (1.0 - weight_sum)[:, None] * bg
 

@@ -35,6 +35,37 @@ def near_far_from_sphere(rays_o: Tensor, rays_d: Tensor, radius: float = 1.0,
     return near, far, hit
 
 
+def halfspace_exit(rays_o: Tensor, rays_d: Tensor, halfspace) -> Tensor:
+    """Distance along each ray where it leaves the half-space ``n . x + c > 0``: ``[R]``.
+
+    ``halfspace = (n_x, n_y, n_z, c)``. With ``s0 = n . o + c`` and ``sd = n . d``, the ray leaves
+    at ``t = -s0 / sd`` when it moves out of it (``sd < 0``), never (``inf``) otherwise; a ray that
+    starts outside and moves further out leaves at 0.
+    """
+    n = torch.as_tensor(halfspace[:3], dtype=rays_o.dtype, device=rays_o.device)
+    s0 = rays_o @ n + float(halfspace[3])
+    sd = rays_d @ n
+    leaving = sd < 0
+    t = torch.where(leaving, -s0 / torch.where(leaving, sd, -torch.ones_like(sd)), torch.full_like(s0, float("inf")))
+    return t.clamp_min(0.0)
+
+
+def object_segment(rays_o: Tensor, rays_d: Tensor, halfspace=None
+                   ) -> tuple[Tensor, Tensor, Tensor, Tensor | None]:
+    """The part of each ray the SDF models: ``near [R], far [R], hit [R], cut [R] | None``.
+
+    The unit-sphere chord (:func:`near_far_from_sphere`), ended where the ray leaves the object's
+    half-space when the run found a support plane (``nepf_core.data.object_region``); ``cut`` is
+    that exit distance (None without a half-space), where the background volume takes over.
+    """
+    near, far, hit = near_far_from_sphere(rays_o, rays_d)
+    if halfspace is None:
+        return near, far, hit, None
+    cut = halfspace_exit(rays_o, rays_d, halfspace)
+    far = torch.maximum(torch.minimum(far, cut), near + 1e-3)
+    return near, far, hit, cut
+
+
 def stratified_z(near: Tensor, far: Tensor, n: int, perturb: bool,
                  generator: torch.Generator | None = None) -> Tensor:
     """``n`` samples in ``[near, far]``, jittered within strata when ``perturb``: ``[R] -> [R, n]``."""

@@ -16,7 +16,7 @@ from nepf_core.train.decisions import Decision, DecisionLog
 from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.rules.empty_rays import EmptyRayRule
 from nepf_core.train.rules.hessian import HessianRule
-from nepf_core.train.rules.masks import decide_masks, lit_outside_masks
+from nepf_core.train.rules.masks import decide_masks, decide_object_region, lit_outside_masks
 from nepf_core.train.rules.occupancy import carve_visual_hull, empty_space_decision, refresh_occupancy
 from nepf_core.train.rules.plateau import PlateauRule
 from nepf_core.train.rules.specular import SpecularRule
@@ -36,6 +36,8 @@ class Adaptivity:
         self.empty_rays = EmptyRayRule(rc)
         self.occupied_fraction: float | None = None
         self.cams: torch.Tensor | None = None
+        self.sparse_points = None
+        """Points triangulated from the images (a capture without masks), for the free-space prior."""
 
     @property
     def decisions(self) -> list[dict]:
@@ -61,12 +63,16 @@ class Adaptivity:
 
     # -- before training --
     def before_training(self, scene) -> None:
-        """Decisions from the data: mask loss, background model, what the occupancy grid is for."""
+        """Decisions from the data: mask loss, background model, the object region without masks,
+        what the occupancy grid is for."""
         c2w = getattr(scene, "c2w", None)
         self.cams = None if c2w is None else torch.as_tensor(np.asarray(c2w)[:, :3, 3], dtype=torch.float32)
         lit = lit_outside_masks(scene.images, scene.masks) if scene.has_masks else 0.0
         use, background, decisions = decide_masks(scene.has_masks, self.rc.w_mask, lit)
         self.run_state.use_mask_loss, self.run_state.background = use, background
+        if background and not scene.has_masks:
+            self.run_state.object_halfspace, region, self.sparse_points = decide_object_region(scene)
+            decisions.append(region)
         for d in decisions:
             self.record(d)
         self.record(empty_space_decision(self.rc))

@@ -31,6 +31,9 @@ class RunState:
     """The model has a background radiance B(d) (scenes without masks)."""
     use_mask_loss: bool = False
     """The mask BCE applies (scenes with masks and ``loss.w_mask > 0``)."""
+    object_halfspace: list[float] | None = None
+    """``(n_x, n_y, n_z, c)``: the object is in front of the support plane found in a capture
+    without masks (:mod:`nepf_core.data.object_region`); None: the whole unit sphere."""
 
     @classmethod
     def from_config(cls, cfg) -> "RunState":
@@ -46,8 +49,9 @@ class RunState:
         return base if base.w_hessian == self.w_hessian else dataclasses.replace(base, w_hessian=self.w_hessian)
 
     def model_config(self, base: ModelConfig) -> ModelConfig:
-        """``base`` with the background model in effect (a copy)."""
-        return dataclasses.replace(base, background=self.background)
+        """``base`` with the background model and the object region in effect (a copy)."""
+        hs = None if self.object_halfspace is None else tuple(float(v) for v in self.object_halfspace)
+        return dataclasses.replace(base, background=self.background, object_halfspace=hs)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

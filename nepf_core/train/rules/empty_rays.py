@@ -39,8 +39,8 @@ class EmptyRayRule:
         occ = getattr(model, "occupancy", None)
         if not self.rc.enabled or occ is None or int(occ.n_updates) == 0:
             return rays, None
-        from nepf_core.render.sampling import near_far_from_sphere
-        near, far, _ = near_far_from_sphere(rays.origins, rays.directions)
+        from nepf_core.render.sampling import object_segment
+        near, far, _, _ = object_segment(rays.origins, rays.directions, model.cfg.object_halfspace)
         hit = occ.ray_hits(rays.origins, rays.directions, near, far)
         u = torch.rand(hit.shape, generator=generator).to(hit.device)
         keep = hit | (u < self.rc.miss_keep)
