@@ -102,10 +102,6 @@ class LossConfig:
     the lobe carries the colour (a real metal: ``s ~ 1``) the term vanishes."""
     w_mask: float = 0.1
     """Mask BCE weight (NeuS's value); only applied when the scene has masks."""
-    w_free_space: float = 0.0
-    """Without masks, what stands in for them: ``mean relu(tau - f(x))`` at points ``x`` on the
-    segments from a camera to the points triangulated from its images, which are empty space
-    (:mod:`nepf_core.train.free_space`). Not in the paper (its scenes have masks)."""
     color_space: str = "srgb"
     """``srgb`` (display space) or ``linear``."""
 

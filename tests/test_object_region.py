@@ -112,14 +112,8 @@ def test_epipolar_and_triangulation_hand_worked():
 
 
 def test_triangulated_points_lie_on_the_surfaces(ball_on_wall):
-    sparse = triangulate_scene(ball_on_wall)
-    pts = sparse.points
-    assert len(pts) > 300 and sparse.views.shape == (len(pts), 2)
-    # each point is in front of both cameras that matched it
-    for k in (0, 1):
-        pose = ball_on_wall.c2w[sparse.views[:, k]]
-        depth = np.einsum("pi,pi->p", pts - pose[:, :3, 3], pose[:, :3, 2])
-        assert (depth > 0).all()
+    pts = triangulate_scene(ball_on_wall)
+    assert len(pts) > 300
     d = surface_distance(pts)
     assert np.median(d) < 0.01
     assert (d < 0.03).mean() > 0.9  # the RANSAC inlier distance
@@ -225,43 +219,3 @@ def test_fit_without_masks_decides_the_region_and_the_model_keeps_it(ball_on_wal
     model, _, _ = load_model(tmp_path / "run", "cpu")
     assert model.cfg.object_halfspace == pytest.approx(tuple(hs))
 
-
-def _sdf_model(fn) -> SimpleNamespace:
-    return SimpleNamespace(sdf=SimpleNamespace(sdf=fn))
-
-
-def test_free_space_samples_lie_on_the_empty_segments():
-    from nepf_core.data.sparse_points import SparsePoints
-    from nepf_core.train.free_space import FreeSpacePrior
-
-    c2w = np.stack([look_at(np.array([x, 0.0, 3.0]), np.zeros(3), up=(0.0, 1.0, 0.0)) for x in (-1.0, 1.0)])
-    pts = np.array([[0.0, 0.0, -0.5], [0.3, 0.2, -0.4], [0.0, 0.0, 2.5]])  # the last one is in front of the region
-    hs = (0.0, 0.0, 1.0, 0.45)  # region z > -0.45: the first point's segment ends at the plane
-    prior = FreeSpacePrior(SparsePoints(pts, np.array([[0, 1]] * 3)), c2w, hs, "cpu", n_samples=4000, margin=0.1)
-    x = prior.sample(torch.Generator().manual_seed(0)).double().numpy()
-    assert 1000 < len(x) < 4000  # the third point's segments never enter the ball
-    assert (np.linalg.norm(x, axis=1) < 1.0 + 1e-6).all() and (x[:, 2] + 0.45 > -1e-6).all()
-    # every sample is on a camera -> point segment, at least the margin before the point
-    on = np.zeros(len(x), bool)
-    for o in c2w[:, :3, 3]:
-        for p in pts[:2]:
-            v = (p - o) / np.linalg.norm(p - o)
-            t = (x - o) @ v
-            off = np.linalg.norm(x - o - t[:, None] * v, axis=1)
-            on |= (off < 1e-5) & (t <= np.linalg.norm(p - o) - 0.1 + 1e-5)
-    assert on.all()
-
-
-def test_free_space_loss_is_zero_for_the_true_scene_and_large_for_a_painted_ball(ball_on_wall):
-    from nepf_core.train.free_space import FreeSpacePrior
-
-    sparse = triangulate_scene(ball_on_wall)
-    region = decide_object_region(ball_on_wall, sparse=sparse)
-    prior = FreeSpacePrior(sparse, ball_on_wall.c2w, region.halfspace(), "cpu", n_samples=4096)
-    g = torch.Generator().manual_seed(0)
-    true = prior.loss(_sdf_model(ball_on_wall_sdf), g).item()
-    painted = prior.loss(_sdf_model(lambda x: torch.linalg.vector_norm(x, dim=-1) - 0.98), g).item()
-    assert true < 1e-3 and painted > 0.1
-    # the hinge, hand-worked: a constant SDF -0.3 costs tau + 0.3 everywhere; +1 costs nothing
-    assert prior.loss(_sdf_model(lambda x: torch.full((x.shape[0],), -0.3)), g).item() == pytest.approx(0.32)
-    assert prior.loss(_sdf_model(lambda x: torch.ones(x.shape[0])), g).item() == 0.0

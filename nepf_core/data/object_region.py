@@ -140,11 +140,11 @@ def find_support_plane(points: np.ndarray, camera_centres: np.ndarray,
     return region
 
 
-def decide_object_region(scene, cfg: RegionConfig | None = None, sparse=None) -> ObjectRegion:
-    """Sparse points of ``scene`` (:func:`triangulate_scene`, or ``sparse`` when given) inside the
-    unit sphere, then :func:`find_support_plane` with its camera centres."""
+def decide_object_region(scene, cfg: RegionConfig | None = None, points: np.ndarray | None = None) -> ObjectRegion:
+    """Sparse points of ``scene`` (:func:`triangulate_scene`, or ``points [P, 3]`` when given) inside
+    the unit sphere, then :func:`find_support_plane` with its camera centres."""
     from nepf_core.data.sparse_points import triangulate_scene
 
-    pts = (sparse if sparse is not None else triangulate_scene(scene)).points
+    pts = points if points is not None else triangulate_scene(scene)
     pts = pts[np.linalg.norm(pts, axis=1) < 1.0]
     return find_support_plane(pts, np.asarray(scene.c2w)[:, :3, 3], cfg)

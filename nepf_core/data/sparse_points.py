@@ -13,9 +13,7 @@ matched with its ``neighbours`` nearest cameras (mutual nearest neighbours, Lowe
 
 and is triangulated by the midpoint of the two rays' closest points (both in front of their
 camera, the rays at least ``min_angle_deg`` apart, so depth is defined). Shapes: ``Scene`` views
-``[N, H, W, 3]``; returns :class:`SparsePoints`: ``points [P, 3]`` in the scene's (normalised)
-frame and ``views [P, 2]``, the two views that see each point (so the segment from either camera
-centre to the point is empty space).
+``[N, H, W, 3]``; returns ``[P, 3]`` points in the scene's (normalised) frame.
 """
 
 from __future__ import annotations
@@ -23,16 +21,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-
-@dataclass
-class SparsePoints:
-    """Triangulated points and the pair of views that saw each."""
-
-    points: np.ndarray
-    """``[P, 3]`` float64, the scene's frame."""
-    views: np.ndarray
-    """``[P, 2]`` int, indices of the two views that matched the point."""
 
 
 @dataclass
@@ -94,8 +82,8 @@ def midpoint_triangulation(o_a: np.ndarray, d_a: np.ndarray, o_b: np.ndarray, d_
     return pts, valid
 
 
-def triangulate_scene(scene, cfg: SparseConfig | None = None) -> SparsePoints:
-    """Sparse points (the scene's frame) from ORB matches between neighbouring views."""
+def triangulate_scene(scene, cfg: SparseConfig | None = None) -> np.ndarray:
+    """Sparse points ``[P, 3]`` (the scene's frame) from ORB matches between neighbouring views."""
     from skimage.feature import ORB, match_descriptors
 
     cfg = cfg or SparseConfig()
@@ -114,7 +102,7 @@ def triangulate_scene(scene, cfg: SparseConfig | None = None) -> SparsePoints:
     for i in range(len(centres)):
         for j in np.argsort(np.linalg.norm(centres - centres[i], axis=1))[1:cfg.neighbours + 1]:
             pairs.add((min(i, int(j)), max(i, int(j))))
-    points, views = [], []
+    points = []
     for i, j in sorted(pairs):
         if len(feats[i][0]) == 0 or len(feats[j][0]) == 0:
             continue
@@ -128,7 +116,4 @@ def triangulate_scene(scene, cfg: SparseConfig | None = None) -> SparsePoints:
                                             np.broadcast_to(centres[j], (len(b), 3)), pixel_rays(K[j], c2w[j], b),
                                             cfg.min_angle_deg)
         points.append(pts[valid])
-        views.append(np.tile([i, j], (int(valid.sum()), 1)))
-    if not points:
-        return SparsePoints(np.zeros((0, 3)), np.zeros((0, 2), int))
-    return SparsePoints(np.concatenate(points), np.concatenate(views))
+    return np.concatenate(points) if points else np.zeros((0, 3))

@@ -36,8 +36,6 @@ class Adaptivity:
         self.empty_rays = EmptyRayRule(rc)
         self.occupied_fraction: float | None = None
         self.cams: torch.Tensor | None = None
-        self.sparse_points = None
-        """Points triangulated from the images (a capture without masks), for the free-space prior."""
 
     @property
     def decisions(self) -> list[dict]:
@@ -71,7 +69,7 @@ class Adaptivity:
         use, background, decisions = decide_masks(scene.has_masks, self.rc.w_mask, lit)
         self.run_state.use_mask_loss, self.run_state.background = use, background
         if background and not scene.has_masks:
-            self.run_state.object_halfspace, region, self.sparse_points = decide_object_region(scene)
+            self.run_state.object_halfspace, region = decide_object_region(scene)
             decisions.append(region)
         for d in decisions:
             self.record(d)

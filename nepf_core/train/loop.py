@@ -36,7 +36,6 @@ from nepf_core.render.renderer import render_rays
 from nepf_core.train.adaptivity import Adaptivity
 from nepf_core.train.clock import TrainClock
 from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
-from nepf_core.train.free_space import FreeSpacePrior
 from nepf_core.train.hooks import TrainHooks
 from nepf_core.train.metrics_log import MetricsLog, plot_error_vs_time, write_json_atomic
 from nepf_core.train.result import FitError, FitResult
@@ -107,10 +106,6 @@ class TrainingRun:
         self.adapt.record(decision)
         if self.model.occupancy is not None:
             self.adapt.start_occupancy(self.model, scene)
-        self.free_space = None   # without masks: empty space along the rays to the triangulated points
-        sparse = self.adapt.sparse_points
-        if cfg.loss.w_free_space > 0 and sparse is not None and len(sparse.points):
-            self.free_space = FreeSpacePrior(sparse, scene.c2w, self.model.cfg.object_halfspace, dev)
         # the render settings in effect (bf16 heads only on CUDA); evaluations use the same
         self.run_cfg = dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, amp_heads=bool(tc.amp and dev.type == "cuda")))
 
@@ -221,9 +216,6 @@ class TrainingRun:
                           shading=rs.shading())
         losses = compute_losses(out, rays, rs.loss_config(self.cfg.loss), use_mask=rs.use_mask_loss,
                                 specular=rs.specular, background=rs.background)
-        if self.free_space is not None:
-            losses["loss_free_space"] = self.free_space.loss(model, self.gen)
-            losses["loss"] = losses["loss"] + self.cfg.loss.w_free_space * losses["loss_free_space"]
         loss = losses["loss"]
         self.optimizer.zero_grad(set_to_none=True)
         ok = bool(torch.isfinite(loss))

@@ -57,16 +57,15 @@ def decide_masks(has_masks: bool, w_mask: float, lit_outside: float = 0.0) -> tu
                                   "no masks: a background volume explains what the object does not cover")]
 
 
-def decide_object_region(scene) -> tuple[list[float] | None, Decision, "SparsePoints"]:
+def decide_object_region(scene) -> tuple[list[float] | None, Decision]:
     """Without masks: the half-space in front of the support plane the images show
-    (:mod:`nepf_core.data.object_region`), or None when there is none (the whole unit sphere);
-    also the triangulated points it was found from (the free-space prior uses them)."""
+    (:mod:`nepf_core.data.object_region`), or None when there is none (the whole unit sphere)."""
     from nepf_core.data.object_region import decide_object_region as decide
     from nepf_core.data.sparse_points import triangulate_scene
 
     sparse = triangulate_scene(scene)
-    region = decide(scene, sparse=sparse)
+    region = decide(scene, points=sparse)
     hs = region.halfspace()
     return (None if hs is None else list(hs)), Decision("object_region", hs is not None,
                                                         f"no masks; {region.reason} ({region.points} points "
-                                                        f"triangulated in the region, {len(sparse.points)} in all)"), sparse
+                                                        f"triangulated in the region, {len(sparse)} in all)")
