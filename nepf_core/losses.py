@@ -100,6 +100,10 @@ class LossConfig:
     pixel catches) only darkens its diffuse by ``(1 - m)``, which the albedo can do as well; the
     images cannot tell the two apart, and without a prior the texture goes into metallic. Where
     the lobe carries the colour (a real metal: ``s ~ 1``) the term vanishes."""
+    w_surface_points: float = 0.0
+    """Without masks: ``mean |f(p)|`` at the points triangulated from the images in the object
+    region (:mod:`nepf_core.train.surface_points`, Geo-NeuS's sparse-point SDF loss). Not in the
+    paper (its scenes have masks)."""
     w_mask: float = 0.1
     """Mask BCE weight (NeuS's value); only applied when the scene has masks."""
     color_space: str = "srgb"
@@ -158,30 +162,45 @@ def mask_bce(weight_sum: Tensor, mask: Tensor, ray_weight: Tensor | None = None)
 
 
 def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, specular: bool = True,
-                   background: bool = False) -> dict[str, Tensor]:
+                   background: bool = False,
+                   background_rays: tuple[Tensor, RayBatch] | None = None) -> dict[str, Tensor]:
     """All enabled loss terms plus their weighted sum under ``"loss"``. ``specular``: whether
     the render evaluated the GGX lobe (``RenderConfig.specular``); L_flat applies only without it.
-    ``background``: the model has a background volume (L_bg with masks)."""
+    ``background``: the model has a background volume (L_bg with masks).
+
+    ``background_rays = (C_bg [B, 3], rays [B])``: the misses the empty-ray rule left out of the
+    SDF batch, rendered by the background alone (their ``rgb_r = rgb_vol = C_bg``,
+    :func:`nepf_core.render.renderer.render_background_only`). The colour terms ``L_r``, ``L_vol``
+    and ``L_bg`` are then means over all ``R + B`` drawn rays, and the kept misses count once in
+    ``L_bg`` (each stands for itself, no longer for ``1 / miss_keep`` drawn misses)."""
     enc = srgb_encode if cfg.color_space == "srgb" else (lambda t: t.clamp(0.0, 1.0))
     gt = enc(rays.rgb)
     fg = rays.mask if (use_mask and rays.mask is not None) else None
     L = {}
     zero = out.rgb_r.new_zeros(())
-    r_enc = enc(out.rgb_r)
-    L["loss_r"] = l1_masked(r_enc, gt, fg) if cfg.w_r > 0 else zero
+    r_sdf = enc(out.rgb_r)
+    r_enc, vol_enc = r_sdf, enc(out.rgb_vol)
+    gt_all, fg_all, miss_weight = gt, fg, rays.weight
+    if background_rays is not None:
+        bg_enc = enc(background_rays[0])
+        r_enc, vol_enc = torch.cat([r_enc, bg_enc]), torch.cat([vol_enc, bg_enc])
+        gt_all = torch.cat([gt, enc(background_rays[1].rgb)])
+        fg_all = None if fg is None else torch.cat([fg, background_rays[1].mask])
+        miss_weight = None
+    L["loss_r"] = l1_masked(r_enc, gt_all, fg_all) if cfg.w_r > 0 else zero
     L["loss_bg"] = zero
-    if background and fg is not None and cfg.w_r > 0:  # a thinned batch's kept misses carry their weight
-        outside = (1.0 - fg) * (rays.weight if rays.weight is not None else 1.0)
-        L["loss_bg"] = l1_masked(r_enc, gt, outside)
+    if background and fg_all is not None and cfg.w_r > 0:  # a thinned batch's kept misses carry their weight
+        outside = (1.0 - fg_all) * (miss_weight if miss_weight is not None else 1.0)
+        L["loss_bg"] = l1_masked(r_enc, gt_all, outside)
     surf_rays = fg if fg is not None else (out.weight_sum.detach() > 0.5).float()
     if cfg.lambda1_surf > 0:
-        target = r_enc.detach() if cfg.surf_target == "radiance" else gt
+        target = r_sdf.detach() if cfg.surf_target == "radiance" else gt
         wt = surf_rays * ((1.0 - out.w_max.detach()) if cfg.surf_one_minus_wmax else 1.0)
         err = (enc(out.rgb_surf) - target).abs().mean(-1)
         L["loss_surf"] = (err * wt).sum() / surf_rays.sum().clamp_min(1.0)
     else:
         L["loss_surf"] = zero
-    L["loss_vol"] = l1_masked(enc(out.rgb_vol), gt, fg) if cfg.lambda2_vol > 0 else zero
+    L["loss_vol"] = l1_masked(vol_enc, gt_all, fg_all) if cfg.lambda2_vol > 0 else zero
     L["loss_eik"] = (weighted_mean(out.eikonal, out.eikonal_weight)
                      if (cfg.w_eikonal > 0 and out.eikonal.numel()) else zero)
     L["loss_hess"] = out.hessian.mean() if (cfg.w_hessian > 0 and out.hessian.numel()) else zero

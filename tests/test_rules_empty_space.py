@@ -160,15 +160,16 @@ def _adapt(cfg, enabled=True, **rules):
 def test_rays_that_meet_no_occupied_cell_leave_the_batch():
     cfg, model, rays = _sphere_model_and_rays()
     a = _adapt(cfg, miss_keep=0.0)
-    kept = a.thin_empty_rays(model, rays, step=0, generator=torch.Generator().manual_seed(1))
+    kept, left_out = a.thin_empty_rays(model, rays, step=0, generator=torch.Generator().manual_seed(1))
     assert torch.equal(kept.view, torch.arange(24))            # exactly the hits, in order
+    assert torch.equal(left_out.view, torch.arange(24, 64))    # the misses, for the background alone
     assert torch.equal(kept.mask, rays.mask[:24]) and kept.unlit.shape == (24,)
     (d,) = named(a, "empty_rays")
     assert d["value"]["left_out_fraction"] == pytest.approx(40 / 64, abs=1e-4) and "62.5%" in d["reason"]
     assert a.step_stats()["rays_left_out"] == pytest.approx(40 / 64)
     # a random share of the misses stays: about miss_keep of them, the hits always
     b = _adapt(cfg, miss_keep=0.5)
-    n_kept = [len(b.thin_empty_rays(model, rays, step=s, generator=torch.Generator().manual_seed(s)))
+    n_kept = [len(b.thin_empty_rays(model, rays, step=s, generator=torch.Generator().manual_seed(s))[0])
               for s in range(1, 41)]
     assert min(n_kept) >= 24 and 24 + 0.35 * 40 < sum(n_kept) / len(n_kept) < 24 + 0.65 * 40
     assert len(named(b, "empty_rays")) == 1                   # recorded once
@@ -178,11 +179,11 @@ def test_rays_that_meet_no_occupied_cell_leave_the_batch():
 
 def test_empty_rays_stay_without_adaptivity_or_before_the_first_refresh():
     cfg, model, rays = _sphere_model_and_rays()
-    assert _adapt(cfg, enabled=False).thin_empty_rays(model, rays, step=0) is rays
+    assert _adapt(cfg, enabled=False).thin_empty_rays(model, rays, step=0) == (rays, None)
     from nepf_core.model import NePFModel
     fresh = NePFModel(cfg.model)                                # never refreshed: everything occupied
     on = _adapt(cfg)
-    assert on.thin_empty_rays(fresh, rays, step=0) is rays and not named(on, "empty_rays")
+    assert on.thin_empty_rays(fresh, rays, step=0) == (rays, None) and not named(on, "empty_rays")
 
 
 def test_kept_misses_carry_importance_weights_and_the_mask_loss_stays_unbiased():
@@ -194,7 +195,7 @@ def test_kept_misses_carry_importance_weights_and_the_mask_loss_stays_unbiased()
     full = float(mask_bce(ws, rays.mask))               # mean over the whole drawn batch
     vals = []
     for s in range(400):
-        kept = a.thin_empty_rays(model, rays, step=s, generator=torch.Generator().manual_seed(100 + s))
+        kept, _ = a.thin_empty_rays(model, rays, step=s, generator=torch.Generator().manual_seed(100 + s))
         hit = kept.view < 24
         assert torch.equal(kept.weight[hit], torch.ones(int(hit.sum())))
         assert torch.allclose(kept.weight[~hit], torch.full((int((~hit).sum()),), 4.0))
@@ -233,3 +234,44 @@ def test_eikonal_mean_weighs_each_sample_by_its_rays_importance_weight():
     assert lw["loss_eik"] == pytest.approx(ld["loss_eik"], rel=1e-4)
     assert lw["loss_mask"] == pytest.approx(ld["loss_mask"], rel=1e-4)
     assert abs(lu["loss_eik"] - ld["loss_eik"]) > 1e-4   # the weights matter here
+
+
+def test_left_out_misses_train_the_background_as_if_rendered_whole():
+    """With a background volume, the misses left out of the SDF batch are rendered by the
+    background alone, and the colour losses over ``kept + left out`` equal those of rendering
+    every drawn ray in full (a miss's SDF weights sum to ~0, so its colour is ``C_bg``). Without
+    them, the background pixels would train only through the ``miss_keep`` share."""
+    from nepf_core.losses import compute_losses
+    from nepf_core.model import NePFModel
+    from nepf_core.render.renderer import render_background_only, render_rays
+    cfg, _, rays = _sphere_model_and_rays(n_hit=8, n_miss=24)
+    cfg.model.background = True
+    torch.manual_seed(0)
+    model = NePFModel(cfg.model)
+    model.occupancy.update(model.sdf.sdf, inv_s=1e4)
+    cfg.render.perturb = False
+    a = _adapt(cfg, miss_keep=0.0)
+    kept, left_out = a.thin_empty_rays(model, rays, step=0, generator=torch.Generator().manual_seed(1))
+    assert len(kept) == 8 and len(left_out) == 24
+
+    def colour_terms(**kw):
+        batch = kw.pop("batch")
+        out = render_rays(model, batch, cfg.render, train=True)
+        L = compute_losses(out, batch, cfg.loss, use_mask=False, background=True, **kw)
+        return L
+
+    whole = colour_terms(batch=rays)
+    bg = render_background_only(model, left_out, cfg.render, train=True)
+    split = colour_terms(batch=kept, background_rays=(bg, left_out))
+    for k in ("loss_r", "loss_vol"):
+        assert float(split[k].detach()) == pytest.approx(float(whole[k].detach()), rel=1e-4, abs=1e-6)
+    only_kept = colour_terms(batch=kept)
+    assert abs(float(only_kept["loss_r"].detach()) - float(whole["loss_r"].detach())) > 1e-3   # the misses matter here
+    # the left-out rays reach the background's parameters
+    model.zero_grad()
+    split["loss_r"].backward()
+    g = sum(float(p.grad.abs().sum()) for p in model.background.parameters() if p.grad is not None)
+    model.zero_grad()
+    colour_terms(batch=kept)["loss_r"].backward()
+    g_kept = sum(float(p.grad.abs().sum()) for p in model.background.parameters() if p.grad is not None)
+    assert g > 2.0 * g_kept

@@ -331,3 +331,17 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     return RenderOutput(rgb_r=rgb_r, rgb_vol=rgb_vol, rgb_surf=rgb_surf, weight_sum=weight_sum, w_max=w_max,
                         depth=depth, eikonal=eikonal, hessian=hess, surf=surf, background=bg, n_samples=int(P),
                         n_head_evals=int(sel_idx.shape[0]), inv_s=float(inv_s.detach()), eikonal_weight=eik_w)
+
+
+def render_background_only(model, rays: RayBatch, cfg: RenderConfig, *, train: bool,
+                           generator: torch.Generator | None = None) -> Tensor:
+    """``[B, 3]`` linear colour of rays that meet no occupied cell: ``C = C_bg``.
+
+    Such a ray's SDF weights sum to at most ~e^{-k_s} (:mod:`nepf_core.render.occupancy`), so
+    ``C = sum_i w_i c_i + (1 - sum_i w_i) C_bg`` is ``C_bg`` up to that bound, for the radiance
+    and the PBR colour alike. The background volume starts where the object's region ends on
+    the ray (the support plane's cut, else the unit sphere's exit), as in :func:`render_rays`.
+    Needs ``model.background``."""
+    _, _, _, cut = object_segment(rays.origins, rays.directions, model.cfg.object_halfspace)
+    return model.background(rays.origins, rays.directions, perturb=train and cfg.perturb, generator=generator,
+                            start=cut)

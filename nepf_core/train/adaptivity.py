@@ -63,13 +63,15 @@ class Adaptivity:
     def before_training(self, scene) -> None:
         """Decisions from the data: mask loss, background model, the object region without masks,
         what the occupancy grid is for."""
+        self.surface_points = None
+        """Without masks: the points triangulated in the object region ``[P, 3]`` (or None)."""
         c2w = getattr(scene, "c2w", None)
         self.cams = None if c2w is None else torch.as_tensor(np.asarray(c2w)[:, :3, 3], dtype=torch.float32)
         lit = lit_outside_masks(scene.images, scene.masks) if scene.has_masks else 0.0
         use, background, decisions = decide_masks(scene.has_masks, self.rc.w_mask, lit)
         self.run_state.use_mask_loss, self.run_state.background = use, background
         if background and not scene.has_masks:
-            self.run_state.object_halfspace, region = decide_object_region(scene)
+            self.run_state.object_halfspace, region, self.surface_points = decide_object_region(scene)
             decisions.append(region)
         for d in decisions:
             self.record(d)
@@ -85,9 +87,12 @@ class Adaptivity:
         self.occupied_fraction = refresh_occupancy(model, step)
 
     def thin_empty_rays(self, model, rays, step: int, generator: torch.Generator | None = None):
-        kept, decision = self.empty_rays.thin(model, rays, step, generator, first=not self.log.has("empty_rays"))
+        """``(kept, left_out)``: the rays to render with the SDF and the misses left out (None when
+        none was); see :class:`nepf_core.train.rules.empty_rays.EmptyRayRule`."""
+        kept, left_out, decision = self.empty_rays.thin(model, rays, step, generator,
+                                                        first=not self.log.has("empty_rays"))
         self.record(decision)
-        return kept
+        return kept, left_out
 
     def wants_evidence(self, step: int) -> bool:
         """Whether step ``step`` is a specular check (render the surface extras for it)."""

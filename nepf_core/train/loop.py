@@ -32,7 +32,8 @@ from nepf_core.data.scene import Scene
 from nepf_core.losses import compute_losses
 from nepf_core.model import NePFModel
 from nepf_core.rays import PixelSampler
-from nepf_core.render.renderer import render_rays
+from nepf_core.render.renderer import render_background_only, render_rays
+from nepf_core.train.surface_points import SurfacePointPrior
 from nepf_core.train.adaptivity import Adaptivity
 from nepf_core.train.clock import TrainClock
 from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
@@ -102,6 +103,9 @@ class TrainingRun:
         self.gen = torch.Generator().manual_seed(tc.seed)
         self.ema = ParamEMA(self.model, tc.ema_decay) if tc.ema_decay != 0 else None   # a negative one: ParamEMA says so
         self.sampler = PixelSampler(scene, dev)
+        points = self.adapt.surface_points   # without masks: where the images saw a surface
+        self.surface_points = (SurfacePointPrior(points, dev) if cfg.loss.w_surface_points > 0 and points is not None
+                               and len(points) else None)
         self.unlit_thr, decision = unlit_pixels(scene, cfg.render)
         self.adapt.record(decision)
         if self.model.occupancy is not None:
@@ -157,7 +161,7 @@ class TrainingRun:
         status = "succeeded"
         self.model.train()
         self.emit_progress("training")
-        self._t_log, self._n_rays, self._n_samples = self.clock.wall(), 0, 0
+        self._t_log, self._n_rays, self._n_samples, self._n_background_rays = self.clock.wall(), 0, 0, 0
         try:
             while self.step < self.total:
                 if self.callbacks.stop_requested():
@@ -209,13 +213,21 @@ class TrainingRun:
         rays = self.sampler.sample(tc.batch_rays, generator=self.gen)
         if self.unlit_thr is not None:
             rays.unlit = rays.rgb.amax(-1) < self.unlit_thr
-        rays = self.adapt.thin_empty_rays(model, rays, self.step, generator=self.gen)
+        rays, left_out = self.adapt.thin_empty_rays(model, rays, self.step, generator=self.gen)
         self._evidence = self.adapt.wants_evidence(self.step)
         out = render_rays(model, rays, self.run_cfg.render, train=True, cos_anneal=self.anneal, generator=self.gen,
                           need_surface_extras=self._evidence, need_lobe_share=self.cfg.loss.w_metallic_unseen > 0,
                           shading=rs.shading())
+        background_rays = None   # the misses left out still show the background: it alone renders them
+        if left_out is not None and model.background is not None:
+            background_rays = (render_background_only(model, left_out, self.run_cfg.render, train=True,
+                                                      generator=self.gen), left_out)
+        self._n_background_rays = 0 if background_rays is None else len(left_out)
         losses = compute_losses(out, rays, rs.loss_config(self.cfg.loss), use_mask=rs.use_mask_loss,
-                                specular=rs.specular, background=rs.background)
+                                specular=rs.specular, background=rs.background, background_rays=background_rays)
+        if self.surface_points is not None:
+            losses["loss_surface_points"] = self.surface_points.loss(model, self.gen)
+            losses["loss"] = losses["loss"] + self.cfg.loss.w_surface_points * losses["loss_surface_points"]
         loss = losses["loss"]
         self.optimizer.zero_grad(set_to_none=True)
         ok = bool(torch.isfinite(loss))
@@ -269,7 +281,7 @@ class TrainingRun:
         rec = {"step": self.step, "wall_s": round(self.clock.wall(), 3), "kind": "train"}
         rec.update({k: float(v.detach()) for k, v in losses.items()})
         rec.update({"inv_s": out.inv_s, "lr": self.optimizer.param_groups[0]["lr"], "batch_rays": len(rays),
-                    "rays_per_s": self._n_rays / dt, "samples_per_s": self._n_samples / dt,
+                    "background_only_rays": self._n_background_rays, "rays_per_s": self._n_rays / dt, "samples_per_s": self._n_samples / dt,
                     "head_evals": out.n_head_evals, "nonfinite_steps": self.nonfinite,
                     "specular_on": bool(self.run_state.specular)})
         rec.update(self.adapt.step_stats())

@@ -8,6 +8,14 @@ importance weight ``RayBatch.weight = 1 / miss_keep`` (hits weigh 1) in the mask
 the eikonal mean, so their expectations stay the means over the drawn batch (unweighted,
 thinning would turn the eikonal into a near-surface term).
 
+With a background volume (captures without masks, DTU), a ray that meets no occupied cell still
+shows the background: its colour is ``C_bg`` (its SDF weights sum to at most ~e^{-k_s}). The
+misses left out of the SDF batch are then returned too, and the loop renders them through the
+background volume alone (:func:`nepf_core.render.renderer.render_background_only`), so every drawn
+pixel trains the background at the cost of its background samples only. Without that, the wall
+behind a mounted object (half the pixels of the fox) trained about ``miss_keep`` as often as
+the object did.
+
 Only with adaptivity on and an occupancy grid that has been refreshed. The NeuS sampler spreads
 a kept ray's samples over its whole chord, so a surface outside the occupied cells is still
 found, and then makes its cells occupied.
@@ -33,12 +41,14 @@ class EmptyRayRule:
         return self.total / self.count if self.count else None
 
     def thin(self, model, rays, step: int, generator: torch.Generator | None,
-             first: bool) -> tuple[object, Decision | None]:
-        """``rays`` (``R``) -> ``(kept RayBatch (R' <= R, same order), decision or None)``;
-        ``first``: no ``empty_rays`` decision was recorded yet (it is recorded once)."""
+             first: bool) -> tuple[object, object | None, Decision | None]:
+        """``rays`` (``R``) -> ``(kept, left_out, decision or None)``: ``kept`` the RayBatch of the
+        hits and the kept misses (``R' <= R``, same order), ``left_out`` the other misses (a RayBatch,
+        or None when nothing was left out); ``first``: no ``empty_rays`` decision was recorded yet
+        (it is recorded once)."""
         occ = getattr(model, "occupancy", None)
         if not self.rc.enabled or occ is None or int(occ.n_updates) == 0:
-            return rays, None
+            return rays, None, None
         from nepf_core.render.sampling import object_segment
         near, far, _, _ = object_segment(rays.origins, rays.directions, model.cfg.object_halfspace)
         hit = occ.ray_hits(rays.origins, rays.directions, near, far)
@@ -50,7 +60,7 @@ class EmptyRayRule:
         self.total += dropped
         self.count += 1
         if not thin:
-            return rays, None
+            return rays, None, None
         decision = None
         if first:
             decision = Decision("empty_rays", {"left_out_fraction": round(dropped, 4), "miss_keep": self.rc.miss_keep},
@@ -59,7 +69,7 @@ class EmptyRayRule:
                                 "which keep the mask loss and the eikonal term on empty space", step)
         kept = rays.index(keep.nonzero(as_tuple=True)[0])
         kept.weight = torch.where(hit[keep], 1.0, 1.0 / max(self.rc.miss_keep, 1e-12)).to(rays.origins.dtype)
-        return kept, decision
+        return kept, rays.index((~keep).nonzero(as_tuple=True)[0]), decision
 
     def state(self) -> dict:
         return {"drop_sum": self.total, "drop_n": self.count}

@@ -57,15 +57,21 @@ def decide_masks(has_masks: bool, w_mask: float, lit_outside: float = 0.0) -> tu
                                   "no masks: a background volume explains what the object does not cover")]
 
 
-def decide_object_region(scene) -> tuple[list[float] | None, Decision]:
+def decide_object_region(scene) -> tuple[list[float] | None, Decision, np.ndarray]:
     """Without masks: the half-space in front of the support plane the images show
-    (:mod:`nepf_core.data.object_region`), or None when there is none (the whole unit sphere)."""
+    (:mod:`nepf_core.data.object_region`), or None when there is none (the whole unit sphere);
+    also the triangulated points inside the object region ``[P, 3]`` (the surface-point prior,
+    :mod:`nepf_core.train.surface_points`)."""
     from nepf_core.data.object_region import decide_object_region as decide
     from nepf_core.data.sparse_points import triangulate_scene
 
     sparse = triangulate_scene(scene)
     region = decide(scene, points=sparse)
     hs = region.halfspace()
+    inside = sparse[np.linalg.norm(sparse, axis=1) < 1.0] if len(sparse) else np.zeros((0, 3))
+    if hs is not None and len(inside):
+        inside = inside[inside @ np.asarray(hs[:3]) + hs[3] > 0.0]
     return (None if hs is None else list(hs)), Decision("object_region", hs is not None,
                                                         f"no masks; {region.reason} ({region.points} points "
-                                                        f"triangulated in the region, {len(sparse)} in all)")
+                                                        f"triangulated in the region, {len(sparse)} in all; "
+                                                        f"{len(inside)} in front of the support)"), inside
