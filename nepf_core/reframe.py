@@ -29,6 +29,15 @@ def reframe_scene(scene: Scene, target_world_from_norm: np.ndarray) -> Scene:
     return out
 
 
+def object_world_from_norm(world_from_norm: np.ndarray, centre, radius: float) -> np.ndarray:
+    """The frame whose unit sphere is the ball ``(centre [3], radius)`` of the frame
+    ``world_from_norm``: ``world_from_norm @ [[radius I, centre], [0, 1]]`` (``[4, 4]``)."""
+    M = np.eye(4)
+    M[:3, :3] *= float(radius)
+    M[:3, 3] = np.asarray(centre, dtype=np.float64)
+    return np.asarray(world_from_norm, dtype=np.float64) @ M
+
+
 def load_held_out(root, target_world_from_norm: np.ndarray, *, downscale: int = 1,
                   max_side: int | None = None) -> Scene:
     """Load a held-out dataset folder (its ``test`` split for Blender layouts, every view

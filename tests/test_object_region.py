@@ -213,9 +213,81 @@ def test_fit_without_masks_decides_the_region_and_the_model_keeps_it(ball_on_wal
     rep = json.loads((tmp_path / "run" / "report.json").read_text())
     dec = {d["decision"]: d for d in rep["decisions"]}
     assert dec["object_region"]["value"] is True and "support plane" in dec["object_region"]["reason"]
+    centre, radius = dec["object_frame"]["value"]["centre"], dec["object_frame"]["value"]["radius"]
     hs = rep["run_state"]["object_halfspace"]
-    assert hs[2] > 0.999 and hs[3] == pytest.approx(-WALL_Z - RegionConfig().margin, abs=0.01)
+    # the wall z = WALL_Z in the object's frame x' = (x - centre) / radius, the margin kept in load units
+    assert hs[2] > 0.999
+    assert hs[3] == pytest.approx((centre[2] - WALL_Z - RegionConfig().margin) / radius, abs=0.01)
     assert json.loads((tmp_path / "run" / "config.json").read_text())["model"]["object_halfspace"] is None
     model, _, _ = load_model(tmp_path / "run", "cpu")
     assert model.cfg.object_halfspace == pytest.approx(tuple(hs))
 
+
+
+def test_enclosing_ball_hand_worked():
+    from nepf_core.data.object_region import enclosing_ball
+    g = np.random.default_rng(0).normal(size=(4000, 3))
+    pts = np.array([2.0, 0.0, 0.0]) + 0.5 * g / np.linalg.norm(g, axis=1, keepdims=True)
+    centre, radius = enclosing_ball(pts, np.array([[6.0, 0.0, 0.0]]))
+    assert np.allclose(centre, [2.0, 0.0, 0.0], atol=0.02)
+    assert radius == pytest.approx(1.1 * 0.5, abs=0.01)            # every point at 0.5, times the margin
+    # a camera 0.5 from the centre caps the radius so that it stays outside: 0.5 / 1.05
+    _, capped = enclosing_ball(pts, np.array([[6.0, 0.0, 0.0], [2.0, 0.5, 0.0]]))
+    assert capped == pytest.approx(0.5 / 1.05, abs=0.01)
+
+
+def test_an_object_larger_than_the_load_frame_gets_a_frame_that_encloses_it(tmp_path):
+    """The load frame's unit sphere is smaller than the ball on the wall (a close-up capture):
+    the object frame's ball holds every visible point of it, the points handed to the
+    surface prior lie on it, and fit() trains and evaluates in that frame (held-out views
+    reframed with the training views)."""
+    import json
+
+    from nepf_core.config import tiny
+    from nepf_core.data.split import split_scene
+    from nepf_core.reframe import object_world_from_norm
+    from nepf_core.train import fit
+    from nepf_core.train.evaluation import EvalTargets
+    from nepf_core.train.hooks import TrainHooks
+    from nepf_core.train.rules.masks import decide_object_region as decide_with_frame
+
+    scene = render_ball_on_wall(n_views=16)
+    s = 0.3    # load frame = world / s: the ball (radius 0.4 world) is 1.33 load units, beyond the unit sphere
+    scene.c2w = scene.c2w.copy()
+    scene.c2w[:, :3, 3] /= s
+    scene.world_from_norm = np.diag([s, s, s, 1.0])
+    hs, decisions, points, frame = decide_with_frame(scene)
+    assert frame is not None and [d.name for d in decisions] == ["object_region", "object_frame"]
+    centre, radius = frame
+    # visible ball surface (in front of the wall), in load units, lies inside the frame's ball
+    g = np.random.default_rng(1).normal(size=(2000, 3))
+    ball = (BALL_CENTRE + BALL_RADIUS * g / np.linalg.norm(g, axis=1, keepdims=True))
+    ball = ball[ball[:, 2] > WALL_Z + 0.05] / s
+    assert (np.linalg.norm(ball - centre, axis=1) < radius).all()
+    cams = scene.c2w[:, :3, 3]
+    assert (np.linalg.norm(cams - centre, axis=1) > radius).all()
+    # the prior's points, back in world units, lie on the ball (not on the wall)
+    world = (points * radius + centre) * s
+    assert len(points) > 50 and np.median(surface_distance(world)) < 0.02
+    assert np.median(np.abs(world[:, 2] - WALL_Z)) > 0.1
+
+    train, test = split_scene(scene, 4)
+    seen = {}
+
+    class Frames(TrainHooks):
+        def after_step(self, run, step, out, losses):
+            seen["train"], seen["test"] = run.scene, run.targets.test_scene
+
+    cfg = tiny()
+    cfg.train.iters, cfg.train.batch_rays, cfg.train.log_every, cfg.train.sync_every = 1, 64, 1, 0
+    fit(train, tmp_path / "run", cfg, device="cpu", targets=EvalTargets(test_scene=test), hooks=[Frames()])
+    expected = object_world_from_norm(scene.world_from_norm, *decide_with_frame(train)[3])
+    assert np.allclose(seen["train"].world_from_norm, expected, atol=1e-6)
+    assert np.allclose(seen["test"].world_from_norm, expected, atol=1e-6)
+    # a held-out camera's centre, mapped back to world units, is where it was
+    back = (seen["test"].world_from_norm @ np.r_[seen["test"].c2w[0][:3, 3], 1.0])[:3]
+    assert np.allclose(back, (scene.world_from_norm @ np.r_[test.c2w[0][:3, 3], 1.0])[:3], atol=1e-4)
+    ck = __import__("torch").load(tmp_path / "run" / "checkpoints" / "latest.pt", weights_only=False)
+    assert np.allclose(ck["extra"]["world_from_norm"], expected, atol=1e-6)
+    assert [r for r in map(json.loads, (tmp_path / "run" / "metrics.jsonl").read_text().splitlines())
+            if r.get("kind") == "test"]

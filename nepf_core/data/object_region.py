@@ -30,6 +30,7 @@ runs: the masks separate the object. Shapes: points ``[P, 3]``, camera centres `
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,6 +69,17 @@ class ObjectRegion:
     points: int = 0
     reason: str = ""
     """Why there is or is not a support plane (for the report)."""
+
+    def in_frame(self, centre, radius: float) -> "ObjectRegion":
+        """This region in the frame ``x' = (x - centre) / radius``: ``n`` stays, the offset becomes
+        ``(n . centre + c) / radius`` and the margin ``margin / radius`` (the same plane and the same
+        physical margin)."""
+        out = dataclasses.replace(self)
+        if self.support_normal is not None:
+            n = np.asarray(self.support_normal, dtype=np.float64)
+            out.support_offset = float((n @ np.asarray(centre, dtype=np.float64) + self.support_offset) / radius)
+            out.margin = self.margin / radius
+        return out
 
     def halfspace(self) -> tuple[float, float, float, float] | None:
         """``(n_x, n_y, n_z, c - margin)``: the object is where ``n . x + c - margin > 0``; None: no support."""
@@ -140,11 +152,35 @@ def find_support_plane(points: np.ndarray, camera_centres: np.ndarray,
     return region
 
 
-def decide_object_region(scene, cfg: RegionConfig | None = None, points: np.ndarray | None = None) -> ObjectRegion:
+def decide_object_region(scene, cfg: RegionConfig | None = None, points: np.ndarray | None = None,
+                         search_radius: float = 1.0) -> ObjectRegion:
     """Sparse points of ``scene`` (:func:`triangulate_scene`, or ``points [P, 3]`` when given) inside
-    the unit sphere, then :func:`find_support_plane` with its camera centres."""
+    the ball of ``search_radius``, then :func:`find_support_plane` with its camera centres."""
     from nepf_core.data.sparse_points import triangulate_scene
 
     pts = points if points is not None else triangulate_scene(scene)
-    pts = pts[np.linalg.norm(pts, axis=1) < 1.0]
+    pts = pts[np.linalg.norm(pts, axis=1) < search_radius]
     return find_support_plane(pts, np.asarray(scene.c2w)[:, :3, 3], cfg)
+
+
+def enclosing_ball(object_points: np.ndarray, camera_centres: np.ndarray, *, quantile: float = 0.98,
+                   margin: float = 1.1, clearance: float = 1.05) -> tuple[np.ndarray, float]:
+    """``(centre [3], radius)`` of the ball the SDF should model: around the points in front of
+    the support, ``[P, 3]``.
+
+    The load-time unit sphere is the largest ball that every camera sees whole
+    (:mod:`nepf_core.data.normalize`). A phone capture has close-ups, so that ball can be smaller
+    than the object: on the fox the snout and the ears were outside it and only the background
+    volume could draw them. The points say where the object is. Robust to stray points:
+
+        centre = mid-point of the per-axis (1 - q, q) quantiles of the points
+        radius = margin * q-quantile of |p - centre|,  capped at min_i |o_i - centre| / clearance
+
+    (every camera centre ``o_i`` stays outside the ball, as the normalisation requires).
+    """
+    p = np.asarray(object_points, dtype=np.float64)
+    lo, hi = np.quantile(p, 1.0 - quantile, axis=0), np.quantile(p, quantile, axis=0)
+    centre = 0.5 * (lo + hi)
+    radius = margin * float(np.quantile(np.linalg.norm(p - centre, axis=1), quantile))
+    reach = float(np.linalg.norm(np.asarray(camera_centres, dtype=np.float64) - centre, axis=1).min()) / clearance
+    return centre, min(radius, reach)

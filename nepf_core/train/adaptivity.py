@@ -16,6 +16,7 @@ from nepf_core.train.decisions import Decision, DecisionLog
 from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.rules.empty_rays import EmptyRayRule
 from nepf_core.train.rules.hessian import HessianRule
+from nepf_core.reframe import object_world_from_norm, reframe_scene
 from nepf_core.train.rules.masks import decide_masks, decide_object_region, lit_outside_masks
 from nepf_core.train.rules.occupancy import carve_visual_hull, empty_space_decision, refresh_occupancy
 from nepf_core.train.rules.plateau import PlateauRule
@@ -60,24 +61,30 @@ class Adaptivity:
             rs.w_hessian = self.rc.w_hessian if decision.value else 0.0
 
     # -- before training --
-    def before_training(self, scene) -> None:
+    def before_training(self, scene):
         """Decisions from the data: mask loss, background model, the object region without masks,
-        what the occupancy grid is for."""
+        what the occupancy grid is for. Returns the scene to train on: ``scene`` itself, or, when a
+        capture without masks has a support plane, ``scene`` in the frame whose unit sphere
+        encloses the object (:func:`nepf_core.train.rules.masks.decide_object_region`); held-out
+        views must then be expressed in it too (``reframe_scene(test, scene.world_from_norm)``)."""
         self.surface_points = None
         """Without masks: the points triangulated in the object region ``[P, 3]`` (or None)."""
-        c2w = getattr(scene, "c2w", None)
-        self.cams = None if c2w is None else torch.as_tensor(np.asarray(c2w)[:, :3, 3], dtype=torch.float32)
         lit = lit_outside_masks(scene.images, scene.masks) if scene.has_masks else 0.0
         use, background, decisions = decide_masks(scene.has_masks, self.rc.w_mask, lit)
         self.run_state.use_mask_loss, self.run_state.background = use, background
         if background and not scene.has_masks:
-            self.run_state.object_halfspace, region, self.surface_points = decide_object_region(scene)
-            decisions.append(region)
+            self.run_state.object_halfspace, region, self.surface_points, frame = decide_object_region(scene)
+            decisions.extend(region)
+            if frame is not None:
+                scene = reframe_scene(scene, object_world_from_norm(scene.world_from_norm, *frame))
+        c2w = getattr(scene, "c2w", None)
+        self.cams = None if c2w is None else torch.as_tensor(np.asarray(c2w)[:, :3, 3], dtype=torch.float32)
         for d in decisions:
             self.record(d)
         self.record(empty_space_decision(self.rc))
         if not self.rc.enabled:
             self.record(Decision("adaptive", False, "adaptivity disabled: every term stays on"))
+        return scene
 
     def start_occupancy(self, model, scene) -> None:
         self.record(carve_visual_hull(model, scene, self.rc))

@@ -33,7 +33,7 @@ from nepf_core.losses import compute_losses
 from nepf_core.model import NePFModel
 from nepf_core.rays import PixelSampler
 from nepf_core.render.renderer import render_background_only, render_rays
-from nepf_core.train.surface_points import SurfacePointPrior
+from nepf_core.reframe import reframe_scene
 from nepf_core.train.adaptivity import Adaptivity
 from nepf_core.train.clock import TrainClock
 from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
@@ -45,6 +45,7 @@ from nepf_core.train.run_state import RunState
 from nepf_core.train.schedule import (coarse_to_fine, cos_anneal_ratio, progress_fraction, run_eta,
                                      scheduled_lr_factor)
 from nepf_core.train.setup import init_radiance_to_data, make_optimizer, resolve_device, unlit_pixels
+from nepf_core.train.surface_points import SurfacePointPrior
 from nepf_core.weight_average import ParamEMA
 
 
@@ -94,7 +95,10 @@ class TrainingRun:
 
         self.run_state = RunState.from_config(cfg)
         self.adapt = Adaptivity(RuleConfig.from_config(cfg, iters_fixed=iters_fixed, **(rules or {})), self.run_state)
-        self.adapt.before_training(scene)
+        scene = self.scene = self.adapt.before_training(scene)   # maybe in the object's frame
+        if targets is not None and targets.test_scene is not None:
+            self.targets = targets = dataclasses.replace(
+                targets, test_scene=reframe_scene(targets.test_scene, scene.world_from_norm))
         (self.dir / "config.json").write_text(cfg.to_json())   # what the user asked for, never updated
 
         self.model = NePFModel(self.run_state.model_config(cfg.model)).to(dev)

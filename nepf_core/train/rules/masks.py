@@ -57,21 +57,44 @@ def decide_masks(has_masks: bool, w_mask: float, lit_outside: float = 0.0) -> tu
                                   "no masks: a background volume explains what the object does not cover")]
 
 
-def decide_object_region(scene) -> tuple[list[float] | None, Decision, np.ndarray]:
-    """Without masks: the half-space in front of the support plane the images show
-    (:mod:`nepf_core.data.object_region`), or None when there is none (the whole unit sphere);
-    also the triangulated points inside the object region ``[P, 3]`` (the surface-point prior,
-    :mod:`nepf_core.train.surface_points`)."""
+def decide_object_region(scene) -> tuple[list[float] | None, list[Decision], np.ndarray,
+                                         tuple[np.ndarray, float] | None]:
+    """Without masks: ``(halfspace, decisions, points, frame)``.
+
+    The points triangulated from the images (:mod:`nepf_core.data.sparse_points`) are searched
+    for a support plane (:mod:`nepf_core.data.object_region`) within the largest ball around
+    the load frame's origin that keeps every camera outside. With one, the object is what lies in
+    front of it, and ``frame = (centre, radius)`` is the ball around those points
+    (:func:`~nepf_core.data.object_region.enclosing_ball`) in load-frame units, the frame the SDF
+    should model, which ``halfspace`` (``n . x + c > 0``, or None: the whole unit sphere) and ``points`` (the triangulated points in the object region,
+    ``[P, 3]``, for :mod:`nepf_core.train.surface_points`) are expressed in. ``frame`` is None
+    when there is no support (the load frame stays)."""
+    from nepf_core.data.normalize import CAMERA_CLEARANCE
     from nepf_core.data.object_region import decide_object_region as decide
+    from nepf_core.data.object_region import enclosing_ball
     from nepf_core.data.sparse_points import triangulate_scene
 
     sparse = triangulate_scene(scene)
-    region = decide(scene, points=sparse)
+    cams = np.asarray(scene.c2w, dtype=np.float64)[:, :3, 3]
+    reach = float(np.linalg.norm(cams, axis=1).min()) / CAMERA_CLEARANCE
+    region = decide(scene, points=sparse, search_radius=reach)
+    frame, decisions = None, []
     hs = region.halfspace()
+    if hs is not None:
+        near = sparse[np.linalg.norm(sparse, axis=1) < reach]
+        obj = near[near @ np.asarray(hs[:3]) + hs[3] > 0.0]
+        centre, radius = enclosing_ball(obj, cams)
+        frame, region = (centre, radius), region.in_frame(centre, radius)
+        sparse, hs = (sparse - centre) / radius, region.halfspace()
+        decisions.append(Decision("object_frame", {"centre": [round(float(v), 4) for v in centre],
+                                                   "radius": round(radius, 4)},
+                                  f"the SDF models the ball around the {len(obj)} points triangulated in front "
+                                  f"of the support (centre and radius in units of the load frame's unit sphere, "
+                                  f"the largest ball every camera sees whole)", 0))
     inside = sparse[np.linalg.norm(sparse, axis=1) < 1.0] if len(sparse) else np.zeros((0, 3))
     if hs is not None and len(inside):
         inside = inside[inside @ np.asarray(hs[:3]) + hs[3] > 0.0]
-    return (None if hs is None else list(hs)), Decision("object_region", hs is not None,
-                                                        f"no masks; {region.reason} ({region.points} points "
-                                                        f"triangulated in the region, {len(sparse)} in all; "
-                                                        f"{len(inside)} in front of the support)"), inside
+    decisions.insert(0, Decision("object_region", hs is not None,
+                                 f"no masks; {region.reason} ({region.points} points triangulated in the region, "
+                                 f"{len(sparse)} in all; {len(inside)} in front of the support)"))
+    return (None if hs is None else list(hs)), decisions, inside, frame
