@@ -171,8 +171,10 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
     ``background_rays = (C_bg [B, 3], rays [B])``: the misses the empty-ray rule left out of the
     SDF batch, rendered by the background alone (their ``rgb_r = rgb_vol = C_bg``,
     :func:`nepf_core.render.renderer.render_background_only`). The colour terms ``L_r``, ``L_vol``
-    and ``L_bg`` are then means over all ``R + B`` drawn rays, and the kept misses count once in
-    ``L_bg`` (each stands for itself, no longer for ``1 / miss_keep`` drawn misses)."""
+    and ``L_bg`` are then means over all ``R + B`` rays, each background ray weighing its
+    ``rays.weight`` (the misses it stands for, :mod:`nepf_core.train.rules.empty_rays`), and the
+    kept misses count once in ``L_bg`` (each stands for itself, no longer for ``1 / miss_keep``
+    drawn misses)."""
     enc = srgb_encode if cfg.color_space == "srgb" else (lambda t: t.clamp(0.0, 1.0))
     gt = enc(rays.rgb)
     fg = rays.mask if (use_mask and rays.mask is not None) else None
@@ -180,18 +182,22 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
     zero = out.rgb_r.new_zeros(())
     r_sdf = enc(out.rgb_r)
     r_enc, vol_enc = r_sdf, enc(out.rgb_vol)
-    gt_all, fg_all, miss_weight = gt, fg, rays.weight
+    gt_all, fg_all = gt, fg
+    colour_q = None          # per-ray weight in the colour means (None: every ray once)
+    outside_q = rays.weight  # L_bg: a thinned batch's kept misses stand for 1 / miss_keep misses
     if background_rays is not None:
-        bg_enc = enc(background_rays[0])
+        bg_rgb, bg_rays = background_rays
+        bg_enc = enc(bg_rgb)
         r_enc, vol_enc = torch.cat([r_enc, bg_enc]), torch.cat([vol_enc, bg_enc])
-        gt_all = torch.cat([gt, enc(background_rays[1].rgb)])
-        fg_all = None if fg is None else torch.cat([fg, background_rays[1].mask])
-        miss_weight = None
-    L["loss_r"] = l1_masked(r_enc, gt_all, fg_all) if cfg.w_r > 0 else zero
+        gt_all = torch.cat([gt, enc(bg_rays.rgb)])
+        fg_all = None if fg is None else torch.cat([fg, bg_rays.mask])
+        bg_q = bg_rays.weight if bg_rays.weight is not None else torch.ones_like(bg_enc[:, 0])
+        colour_q = outside_q = torch.cat([torch.ones_like(gt[:, 0]), bg_q])
+    colour_w = fg_all if colour_q is None else (colour_q if fg_all is None else fg_all * colour_q)
+    L["loss_r"] = l1_masked(r_enc, gt_all, colour_w) if cfg.w_r > 0 else zero
     L["loss_bg"] = zero
-    if background and fg_all is not None and cfg.w_r > 0:  # a thinned batch's kept misses carry their weight
-        outside = (1.0 - fg_all) * (miss_weight if miss_weight is not None else 1.0)
-        L["loss_bg"] = l1_masked(r_enc, gt_all, outside)
+    if background and fg_all is not None and cfg.w_r > 0:
+        L["loss_bg"] = l1_masked(r_enc, gt_all, (1.0 - fg_all) * (outside_q if outside_q is not None else 1.0))
     surf_rays = fg if fg is not None else (out.weight_sum.detach() > 0.5).float()
     if cfg.lambda1_surf > 0:
         target = r_sdf.detach() if cfg.surf_target == "radiance" else gt
@@ -200,7 +206,7 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
         L["loss_surf"] = (err * wt).sum() / surf_rays.sum().clamp_min(1.0)
     else:
         L["loss_surf"] = zero
-    L["loss_vol"] = l1_masked(vol_enc, gt_all, fg_all) if cfg.lambda2_vol > 0 else zero
+    L["loss_vol"] = l1_masked(vol_enc, gt_all, colour_w) if cfg.lambda2_vol > 0 else zero
     L["loss_eik"] = (weighted_mean(out.eikonal, out.eikonal_weight)
                      if (cfg.w_eikonal > 0 and out.eikonal.numel()) else zero)
     L["loss_hess"] = out.hessian.mean() if (cfg.w_hessian > 0 and out.hessian.numel()) else zero

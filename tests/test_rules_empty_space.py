@@ -162,7 +162,9 @@ def test_rays_that_meet_no_occupied_cell_leave_the_batch():
     a = _adapt(cfg, miss_keep=0.0)
     kept, left_out = a.thin_empty_rays(model, rays, step=0, generator=torch.Generator().manual_seed(1))
     assert torch.equal(kept.view, torch.arange(24))            # exactly the hits, in order
-    assert torch.equal(left_out.view, torch.arange(24, 64))    # the misses, for the background alone
+    # the misses, for the background alone: as many as the SDF batch, each standing for 40 / 24
+    assert len(left_out) == 24 and bool((left_out.view >= 24).all()) and len(set(left_out.view.tolist())) == 24
+    assert torch.allclose(left_out.weight, torch.full((24,), 40 / 24))
     assert torch.equal(kept.mask, rays.mask[:24]) and kept.unlit.shape == (24,)
     (d,) = named(a, "empty_rays")
     assert d["value"]["left_out_fraction"] == pytest.approx(40 / 64, abs=1e-4) and "62.5%" in d["reason"]
@@ -239,39 +241,55 @@ def test_eikonal_mean_weighs_each_sample_by_its_rays_importance_weight():
 def test_left_out_misses_train_the_background_as_if_rendered_whole():
     """With a background volume, the misses left out of the SDF batch are rendered by the
     background alone, and the colour losses over ``kept + left out`` equal those of rendering
-    every drawn ray in full (a miss's SDF weights sum to ~0, so its colour is ``C_bg``). Without
-    them, the background pixels would train only through the ``miss_keep`` share."""
+    every drawn ray in full (a miss's SDF weights sum to ~0, so its colour is ``C_bg``); when
+    there are more misses than SDF rays, a subset as large as the SDF batch stands for them with
+    importance weights, and the losses are right in expectation. Without them, the background
+    pixels would train only through the ``miss_keep`` share."""
     from nepf_core.losses import compute_losses
     from nepf_core.model import NePFModel
     from nepf_core.render.renderer import render_background_only, render_rays
-    cfg, _, rays = _sphere_model_and_rays(n_hit=8, n_miss=24)
-    cfg.model.background = True
-    torch.manual_seed(0)
-    model = NePFModel(cfg.model)
-    model.occupancy.update(model.sdf.sdf, inv_s=1e4)
-    cfg.render.perturb = False
-    a = _adapt(cfg, miss_keep=0.0)
-    kept, left_out = a.thin_empty_rays(model, rays, step=0, generator=torch.Generator().manual_seed(1))
-    assert len(kept) == 8 and len(left_out) == 24
 
-    def colour_terms(**kw):
-        batch = kw.pop("batch")
+    def setup(n_hit, n_miss):
+        cfg, _, rays = _sphere_model_and_rays(n_hit=n_hit, n_miss=n_miss)
+        cfg.model.background = True
+        torch.manual_seed(0)
+        model = NePFModel(cfg.model)
+        model.occupancy.update(model.sdf.sdf, inv_s=1e4)
+        cfg.render.perturb = False
+        return cfg, model, rays, _adapt(cfg, miss_keep=0.0)
+
+    def losses(cfg, model, batch, **kw):
         out = render_rays(model, batch, cfg.render, train=True)
-        L = compute_losses(out, batch, cfg.loss, use_mask=False, background=True, **kw)
-        return L
+        return compute_losses(out, batch, cfg.loss, use_mask=False, background=True, **kw)
 
-    whole = colour_terms(batch=rays)
-    bg = render_background_only(model, left_out, cfg.render, train=True)
-    split = colour_terms(batch=kept, background_rays=(bg, left_out))
+    cfg, model, rays, a = setup(24, 16)
+    kept, left_out = a.thin_empty_rays(model, rays, step=0, generator=torch.Generator().manual_seed(1))
+    assert len(kept) == 24 and len(left_out) == 16 and left_out.weight is None
+    whole = losses(cfg, model, rays)
+    split = losses(cfg, model, kept, background_rays=(render_background_only(model, left_out, cfg.render, train=True),
+                                                      left_out))
     for k in ("loss_r", "loss_vol"):
         assert float(split[k].detach()) == pytest.approx(float(whole[k].detach()), rel=1e-4, abs=1e-6)
-    only_kept = colour_terms(batch=kept)
-    assert abs(float(only_kept["loss_r"].detach()) - float(whole["loss_r"].detach())) > 1e-3   # the misses matter here
+    only_kept = losses(cfg, model, kept)
+    assert abs(float(only_kept["loss_r"].detach()) - float(whole["loss_r"].detach())) > 1e-3   # the misses matter
     # the left-out rays reach the background's parameters
     model.zero_grad()
     split["loss_r"].backward()
     g = sum(float(p.grad.abs().sum()) for p in model.background.parameters() if p.grad is not None)
     model.zero_grad()
-    colour_terms(batch=kept)["loss_r"].backward()
+    losses(cfg, model, kept)["loss_r"].backward()
     g_kept = sum(float(p.grad.abs().sum()) for p in model.background.parameters() if p.grad is not None)
     assert g > 2.0 * g_kept
+
+    # more misses than SDF rays: 8 of the 24 stand for all of them, weight 3, unbiased on average
+    cfg, model, rays, a = setup(8, 24)
+    whole = float(losses(cfg, model, rays)["loss_r"].detach())
+    with torch.no_grad():
+        c_bg = render_background_only(model, rays, cfg.render, train=True)
+        vals = []
+        for s in range(300):
+            kept, left_out = a.thin_empty_rays(model, rays, step=s, generator=torch.Generator().manual_seed(s))
+            assert len(kept) == 8 and len(left_out) == 8 and torch.allclose(left_out.weight, torch.full((8,), 3.0))
+            vals.append(float(losses(cfg, model, kept, background_rays=(c_bg[left_out.view], left_out))["loss_r"]))
+    assert abs(sum(vals) / len(vals) - whole) < 0.02 * whole
+    assert max(vals) - min(vals) > 1e-3     # the subsets differ
