@@ -47,17 +47,6 @@ def test_samples_lie_outside_the_sphere_and_are_sorted():
         assert float(t.max()) <= bg.cfg.far * 1.0001
 
 
-def test_near_samples_are_uniform_in_distance_then_uniform_in_disparity():
-    """Hand-worked: t0 = 2, two near samples over [2, 2.5], two in disparity over [2.5, 100]."""
-    bg = BackgroundVolume(BackgroundConfig(n_samples=4, n_near=2, near_depth=0.5, far=100.0))
-    t = bg.sample_distances(torch.tensor([2.0]), perturb=False)
-    expected = [2.125, 2.375, 1.0 / (0.75 / 2.5 + 0.25 / 100.0), 1.0 / (0.25 / 2.5 + 0.75 / 100.0)]
-    assert torch.allclose(t, torch.tensor([expected]), atol=1e-5)
-    tp = bg.sample_distances(torch.full((500,), 2.0), perturb=True, generator=torch.Generator().manual_seed(0))
-    assert ((tp[:, 0] >= 2.0) & (tp[:, 0] <= 2.25) & (tp[:, 1] >= 2.25) & (tp[:, 1] <= 2.5)).all()
-    assert (tp[:, 2] >= 2.5).all() and float(tp[:, 1:].std(0).min()) > 0.01   # jittered within their strata
-
-
 def test_constant_colour_comes_back_exactly_and_the_volume_is_opaque():
     """Whatever the densities, the weights sum to 1 (the last sample is opaque), so a constant
     colour comes back unchanged."""

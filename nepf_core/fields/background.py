@@ -13,14 +13,8 @@ Space outside the sphere is contracted into the shell ``1 < |c| < 2`` (mip-NeRF 
 
 and a multi-resolution dense grid on ``[-2, 2]^3`` (:class:`MultiResGrid`) with a small MLP
 gives a density ``sigma = softplus(s)`` and a colour ``rgb = sigmoid(g(feature, PE(d)))``.
-Each ray takes ``n_near`` stratified samples uniform in distance over ``[t0, t0 + near_depth]``,
-where ``t0`` is where it leaves the object's region (the unit sphere, or the support plane), and
-``n_samples - n_near`` uniform in disparity over ``[t1, far]``, ``t1 = t0 + near_depth``:
-``t_i = 1 / ((1 - u_i) / t1 + u_i / far)``. Why the near samples: the surface right behind the
-region (the wall a mounted head hangs on) must be a sheet about one sample spacing thick, and a
-thick sheet is seen from another angle at another place, which blurs it along the parallax; at
-``t0 ~ 3`` disparity spacing alone puts 0.12 units between the first samples (~9 px at the fox's
-540 px). The ray is
+Each ray takes ``n_samples`` stratified samples uniform in disparity between where it leaves
+the unit sphere, ``t0``, and ``far``: ``t_i = 1 / ((1 - u_i) / t0 + u_i / far)``, and is
 composited with the standard volume rendering over the *contracted* spacing
 ``delta_i = |c(x_{i+1}) - c(x_i)|`` (bounded, so the density is in contracted units); the last
 sample's ``delta`` is infinite, so the background is opaque:
@@ -49,11 +43,7 @@ class BackgroundConfig:
     """Settings of :class:`BackgroundVolume`."""
 
     n_samples: int = 24
-    """Samples per ray behind the object's region, near ones included."""
-    n_near: int = 12
-    """Of those, uniform in distance over the first ``near_depth`` (the rest uniform in disparity)."""
-    near_depth: float = 0.5
-    """Depth of the near samples' range (normalised units; the sphere has radius 1)."""
+    """Samples per ray outside the unit sphere (uniform in disparity)."""
     far: float = 100.0
     """Last sample distance along the ray (normalised units; the sphere has radius 1)."""
     resolutions: tuple[int, int] = (16, 128)
@@ -96,25 +86,14 @@ class BackgroundVolume(nn.Module):
                                          width=cfg.width, depth=1))
 
     def sample_distances(self, t0: Tensor, *, perturb: bool, generator: torch.Generator | None = None) -> Tensor:
-        """``[R] -> [R, n]`` sorted distances: ``n_near`` uniform over ``[t0, t0 + near_depth]``, the rest
-        uniform in disparity from there to ``far`` (each stratified when ``perturb``)."""
-        cfg = self.cfg
-        n_near = min(cfg.n_near, cfg.n_samples)
-        n_far = cfg.n_samples - n_near
-
-        def strata(n: int) -> Tensor:
-            u = ((torch.arange(n, device=t0.device, dtype=t0.dtype) + 0.5) / n).expand(t0.shape[0], n)
-            if perturb:
-                u = u + (torch.rand(u.shape, device=t0.device, dtype=t0.dtype, generator=generator) - 0.5) / n
-            return u
-
-        t1 = t0 + cfg.near_depth if n_near else t0
-        parts = [t0[:, None] + strata(n_near) * cfg.near_depth] if n_near else []
-        if n_far:
-            far = torch.maximum(torch.full_like(t1, cfg.far), t1 * 1.01)
-            u = strata(n_far)
-            parts.append(1.0 / ((1.0 - u) / t1[:, None] + u / far[:, None]))
-        return torch.cat(parts, dim=1)
+        """``[R] -> [R, n]`` distances uniform in disparity from ``t0`` to ``far`` (stratified when ``perturb``)."""
+        n = self.cfg.n_samples
+        u = (torch.arange(n, device=t0.device, dtype=t0.dtype) + 0.5) / n
+        u = u.expand(t0.shape[0], n)
+        if perturb:
+            u = u + (torch.rand(u.shape, device=t0.device, dtype=t0.dtype, generator=generator) - 0.5) / n
+        far = torch.maximum(torch.full_like(t0, self.cfg.far), t0 * 1.01)
+        return 1.0 / ((1.0 - u) / t0[:, None] + u / far[:, None])
 
     def forward(self, o: Tensor, d: Tensor, *, perturb: bool = False,
                 generator: torch.Generator | None = None, start: Tensor | None = None) -> Tensor:
