@@ -154,7 +154,9 @@ def fast() -> NePFConfig:
     Of the paper's light-variance terms only the intensity one (``lambda3``) stays: the two
     direction terms pull the light directions' spread toward the normals', which tilts ``l``
     toward ``n`` and moves the shading into the albedo (docs/FAST.md, "The light field's direction
-    terms"). Options tried for this preset and not adopted: docs/TRIED.md."""
+    terms"). Without masks, the points triangulated in front of the support plane pull the SDF's
+    zero level set onto them (``w_surface_points``, Geo-NeuS; docs/ARCHITECTURE.md, the object
+    frame). Options tried for this preset and not adopted: docs/TRIED.md."""
     head = HeadConfig(width=64, depth=2, activation="relu", n_freqs_v=4)
     return NePFConfig(
         name="fast",
