@@ -162,6 +162,11 @@ def test_rays_that_meet_no_occupied_cell_leave_the_batch():
     a = _adapt(cfg, miss_keep=0.0)
     kept, left_out = a.thin_empty_rays(model, rays, step=0, generator=torch.Generator().manual_seed(1))
     assert torch.equal(kept.view, torch.arange(24))            # exactly the hits, in order
+    assert left_out is None                                     # no background shows the misses
+    from nepf_core.fields.background import BackgroundVolume
+    model.background = BackgroundVolume()
+    _, left_out = _adapt(cfg, miss_keep=0.0).thin_empty_rays(model, rays, step=0,
+                                                             generator=torch.Generator().manual_seed(1))
     # the misses, for the background alone: as many as the SDF batch, each standing for 40 / 24
     assert len(left_out) == 24 and bool((left_out.view >= 24).all()) and len(set(left_out.view.tolist())) == 24
     assert torch.allclose(left_out.weight, torch.full((24,), 40 / 24))
@@ -293,3 +298,19 @@ def test_left_out_misses_train_the_background_as_if_rendered_whole():
             vals.append(float(losses(cfg, model, kept, background_rays=(c_bg[left_out.view], left_out))["loss_r"]))
     assert abs(sum(vals) / len(vals) - whole) < 0.02 * whole
     assert max(vals) - min(vals) > 1e-3     # the subsets differ
+
+
+def test_surface_point_prior_is_the_mean_absolute_sdf_at_the_points():
+    """Hand-worked on the fast SDF's initial sphere (r = 0.5, exact at start): points at radius
+    0.7 and 0.4 give |f| = 0.2 and 0.1; drawn with replacement the mean lies between, and the
+    gradient moves the zero level set towards both."""
+    from nepf_core.model import NePFModel
+    from nepf_core.train.surface_points import SurfacePointPrior
+    model = NePFModel(fast().model)
+    far = np.array([[0.7, 0.0, 0.0]] * 3)
+    prior = SurfacePointPrior(far, "cpu", n_samples=8)
+    assert float(prior.loss(model).detach()) == pytest.approx(0.2, abs=1e-4)
+    mixed = SurfacePointPrior(np.array([[0.0, 0.7, 0.0], [0.0, 0.0, -0.4]]), "cpu", n_samples=4000)
+    assert 0.1 - 1e-3 < float(mixed.loss(model, torch.Generator().manual_seed(0)).detach()) < 0.2 + 1e-3
+    assert float(mixed.loss(model, torch.Generator().manual_seed(0)).detach()) == pytest.approx(0.15, abs=0.01)
+    assert float(SurfacePointPrior(np.zeros((0, 3)), "cpu").loss(model)) == 0.0

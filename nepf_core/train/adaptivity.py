@@ -12,11 +12,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from nepf_core.reframe import object_world_from_norm, reframe_scene
 from nepf_core.train.decisions import Decision, DecisionLog
 from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.rules.empty_rays import EmptyRayRule
 from nepf_core.train.rules.hessian import HessianRule
-from nepf_core.reframe import object_world_from_norm, reframe_scene
 from nepf_core.train.rules.masks import decide_masks, decide_object_region, lit_outside_masks
 from nepf_core.train.rules.occupancy import carve_visual_hull, empty_space_decision, refresh_occupancy
 from nepf_core.train.rules.plateau import PlateauRule

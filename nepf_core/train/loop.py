@@ -223,7 +223,7 @@ class TrainingRun:
                           need_surface_extras=self._evidence, need_lobe_share=self.cfg.loss.w_metallic_unseen > 0,
                           shading=rs.shading())
         background_rays = None   # the misses left out still show the background: it alone renders them
-        if left_out is not None and model.background is not None:
+        if left_out is not None:
             background_rays = (render_background_only(model, left_out, self.run_cfg.render, train=True,
                                                       generator=self.gen), left_out)
         self._n_background_rays = 0 if background_rays is None else len(left_out)
@@ -285,7 +285,8 @@ class TrainingRun:
         rec = {"step": self.step, "wall_s": round(self.clock.wall(), 3), "kind": "train"}
         rec.update({k: float(v.detach()) for k, v in losses.items()})
         rec.update({"inv_s": out.inv_s, "lr": self.optimizer.param_groups[0]["lr"], "batch_rays": len(rays),
-                    "background_only_rays": self._n_background_rays, "rays_per_s": self._n_rays / dt, "samples_per_s": self._n_samples / dt,
+                    "background_only_rays": self._n_background_rays, "rays_per_s": self._n_rays / dt,
+                    "samples_per_s": self._n_samples / dt,
                     "head_evals": out.n_head_evals, "nonfinite_steps": self.nonfinite,
                     "specular_on": bool(self.run_state.specular)})
         rec.update(self.adapt.step_stats())

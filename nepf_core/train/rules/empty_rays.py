@@ -44,8 +44,9 @@ class EmptyRayRule:
     def thin(self, model, rays, step: int, generator: torch.Generator | None,
              first: bool) -> tuple[object, object | None, Decision | None]:
         """``rays`` (``R``) -> ``(kept, left_out, decision or None)``: ``kept`` the RayBatch of the
-        hits and the kept misses (``R' <= R``, same order), ``left_out`` the other misses (a RayBatch,
-        or None when nothing was left out); ``first``: no ``empty_rays`` decision was recorded yet
+        hits and the kept misses (``R' <= R``, same order), ``left_out`` the other misses for the
+        background alone (a RayBatch, or None when nothing was left out or the model has no
+        background); ``first``: no ``empty_rays`` decision was recorded yet
         (it is recorded once)."""
         occ = getattr(model, "occupancy", None)
         if not self.rc.enabled or occ is None or int(occ.n_updates) == 0:
@@ -70,7 +71,9 @@ class EmptyRayRule:
                                 "which keep the mask loss and the eikonal term on empty space", step)
         kept = rays.index(keep.nonzero(as_tuple=True)[0])
         kept.weight = torch.where(hit[keep], 1.0, 1.0 / max(self.rc.miss_keep, 1e-12)).to(rays.origins.dtype)
-        return kept, self._background_share(rays, keep, len(kept), generator), decision
+        left_out = (self._background_share(rays, keep, len(kept), generator)
+                    if getattr(model, "background", None) is not None else None)   # only a background shows them
+        return kept, left_out, decision
 
     @staticmethod
     def _background_share(rays, keep: torch.Tensor, n_kept: int, generator: torch.Generator | None):

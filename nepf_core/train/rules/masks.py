@@ -66,13 +66,17 @@ def decide_object_region(scene) -> tuple[list[float] | None, list[Decision], np.
     the load frame's origin that keeps every camera outside. With one, the object is what lies in
     front of it, and ``frame = (centre, radius)`` is the ball around those points
     (:func:`~nepf_core.data.object_region.enclosing_ball`) in load-frame units, the frame the SDF
-    should model, which ``halfspace`` (``n . x + c > 0``, or None: the whole unit sphere) and ``points`` (the triangulated points in the object region,
-    ``[P, 3]``, for :mod:`nepf_core.train.surface_points`) are expressed in. ``frame`` is None
-    when there is no support (the load frame stays)."""
+    should model. ``halfspace`` (``n . x + c > 0``, or None: the whole unit sphere) and
+    ``points`` (the triangulated points in the object region, ``[P, 3]``, for
+    :mod:`nepf_core.train.surface_points`) are in that frame. ``frame`` is None when there is
+    no support (the load frame stays)."""
     from nepf_core.data.normalize import CAMERA_CLEARANCE
     from nepf_core.data.object_region import decide_object_region as decide
     from nepf_core.data.object_region import enclosing_ball
     from nepf_core.data.sparse_points import triangulate_scene
+
+    def in_front(p: np.ndarray, hs) -> np.ndarray:
+        return p[p @ np.asarray(hs[:3]) + hs[3] > 0.0]
 
     sparse = triangulate_scene(scene)
     cams = np.asarray(scene.c2w, dtype=np.float64)[:, :3, 3]
@@ -81,8 +85,7 @@ def decide_object_region(scene) -> tuple[list[float] | None, list[Decision], np.
     frame, decisions = None, []
     hs = region.halfspace()
     if hs is not None:
-        near = sparse[np.linalg.norm(sparse, axis=1) < reach]
-        obj = near[near @ np.asarray(hs[:3]) + hs[3] > 0.0]
+        obj = in_front(sparse[np.linalg.norm(sparse, axis=1) < reach], hs)
         centre, radius = enclosing_ball(obj, cams)
         frame, region = (centre, radius), region.in_frame(centre, radius)
         sparse, hs = (sparse - centre) / radius, region.halfspace()
@@ -91,9 +94,9 @@ def decide_object_region(scene) -> tuple[list[float] | None, list[Decision], np.
                                   f"the SDF models the ball around the {len(obj)} points triangulated in front "
                                   f"of the support (centre and radius in units of the load frame's unit sphere, "
                                   f"the largest ball every camera sees whole)", 0))
-    inside = sparse[np.linalg.norm(sparse, axis=1) < 1.0] if len(sparse) else np.zeros((0, 3))
-    if hs is not None and len(inside):
-        inside = inside[inside @ np.asarray(hs[:3]) + hs[3] > 0.0]
+    inside = sparse[np.linalg.norm(sparse, axis=1) < 1.0]
+    if hs is not None:
+        inside = in_front(inside, hs)
     decisions.insert(0, Decision("object_region", hs is not None,
                                  f"no masks; {region.reason} ({region.points} points triangulated in the region, "
                                  f"{len(sparse)} in all; {len(inside)} in front of the support)"))
