@@ -1,17 +1,22 @@
 """Multi-resolution dense grid encoding (the `fast` preset's SDF input) and a sphere prior.
 
 Why dense grids and not a hash grid: on the 2-core CPU target a pure-torch hash grid
-costs several times more per forward+backward than ``F.grid_sample`` on a few dense volumes
+costs several times more per forward+backward than a trilinear lookup in a few dense volumes
 (docs/FAST.md).
 
 Conventions
 -----------
 * Input ``x`` lives in ``[-bound, bound]^3`` (normalised frame), shape ``[N, 3]``.
   Points outside are clamped to the border (``padding_mode="border"``).
-* Level ``l`` is a parameter of shape ``[1, F, R_l, R_l, R_l]`` (grid_sample layout
-  ``[B, C, D, H, W]``, i.e. indexed ``[z, y, x]``). With ``align_corners=True`` the
-  ``R_l`` nodes sit on ``-bound + 2*bound*i/(R_l-1)``, so the cell size is
-  ``h_l = 2*bound/(R_l-1)``.
+* The levels live in one parameter ``table [sum_l R_l^3, F]``, level ``l`` in rows
+  ``first_row_l .. first_row_l + R_l^3 - 1``, one row per node, node ``(i, j, k)`` along
+  ``(x, y, z)`` at row ``first_row_l + (k R_l + j) R_l + i`` (the ``grid_sample`` volume
+  ``[1, F, R_l, R_l, R_l]``, ``[z, y, x]``-indexed, transposed); :meth:`MultiResGrid.level`
+  gives level ``l``'s rows. The ``R_l`` nodes per axis sit
+  on ``-bound + 2*bound*i/(R_l-1)`` (``align_corners=True``), so the cell size is
+  ``h_l = 2*bound/(R_l-1)``. The lookup is :func:`nepf_core.fields.trilinear.trilinear_lookup`:
+  one lookup for all active levels, whose backward touches only the rows a step read (why:
+  that module's docstring).
 * Resolutions grow geometrically:
   ``R_l = round(base * b**l)``, ``b = (max_resolution/base) ** (1/(n_levels-1))``.
 * Output ``[N, n_levels*F]``, level-major (``[l0f0..l0fF-1, l1f0, ...]``).
@@ -24,8 +29,9 @@ import math
 from dataclasses import dataclass
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
+
+from nepf_core.fields.trilinear import trilinear_lookup
 
 __all__ = ["GridConfig", "MultiResGrid", "sphere_sdf"]
 
@@ -58,7 +64,7 @@ class GridConfig:
 
 
 class MultiResGrid(nn.Module):
-    """Multi-resolution dense feature grid, trilinear lookup with ``F.grid_sample``.
+    """Multi-resolution dense feature grid, trilinear lookup (:func:`trilinear_lookup`).
 
     ``forward(x [N,3]) -> [N, n_levels*F]`` with
     ``out[:, l*F:(l+1)*F] = trilinear(V_l, x / bound)`` for active levels ``l`` and zeros
@@ -71,12 +77,14 @@ class MultiResGrid(nn.Module):
         super().__init__()
         self.cfg = cfg = cfg or GridConfig()
         self.resolutions = cfg.resolutions()
-        self.grids = nn.ParameterList(
-            [
-                nn.Parameter(torch.randn(1, cfg.features_per_level, r, r, r) * cfg.init_std)
-                for r in self.resolutions
-            ]
-        )
+        f = cfg.features_per_level
+        # each level drawn in the volume layout [1, F, R, R, R], stored as rows [R^3, F]
+        self.table = nn.Parameter(torch.cat([(torch.randn(1, f, r, r, r) * cfg.init_std).reshape(f, -1).t()
+                                             for r in self.resolutions]).contiguous())
+        sizes = [r ** 3 for r in self.resolutions]
+        self.first_rows = [sum(sizes[:level]) for level in range(len(sizes))]
+        self.register_buffer("_resolutions", torch.tensor(self.resolutions), persistent=False)
+        self.register_buffer("_first_rows", torch.tensor(self.first_rows), persistent=False)
         self.active_levels = cfg.n_levels
         self.set_active_levels(max(1, min(cfg.start_levels, cfg.n_levels)))
 
@@ -117,21 +125,30 @@ class MultiResGrid(nn.Module):
     def set_extra_state(self, state) -> None:
         self.set_active_levels(int(state["active_levels"]))
 
+    def level(self, level: int) -> Tensor:
+        """Level ``level``'s rows of the table, ``[R_l^3, F]`` (a view)."""
+        r = self.resolutions[level]
+        return self.table[self.first_rows[level]:self.first_rows[level] + r ** 3]
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        """Checkpoints that stored one ``grid_sample`` volume per level (``grids.<l>``,
+        ``[1, F, R, R, R]``) load into the table."""
+        old = [state_dict.pop(f"{prefix}grids.{level}") for level in range(len(self.resolutions))
+               if f"{prefix}grids.{level}" in state_dict]
+        if old:
+            state_dict[f"{prefix}table"] = torch.cat([v.reshape(v.shape[1], -1).t() for v in old]).contiguous()
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     # -- lookup ---------------------------------------------------------------------
     def forward(self, x: Tensor) -> Tensor:
         """Encode ``x [N,3]`` -> ``[N, n_levels*F]`` (dtype of the grids)."""
-        n = x.shape[0]
-        g = (x / self.cfg.bound).to(self.grids[0].dtype).view(1, n, 1, 1, 3)
-        feats = []
-        for level in range(self.active_levels):
-            v = F.grid_sample(
-                self.grids[level], g, mode="bilinear", padding_mode="border", align_corners=True
-            )  # [1, F, N, 1, 1]
-            feats.append(v.view(-1, n))
-        n_off = self.cfg.n_levels - self.active_levels
+        k = self.active_levels
+        feats = trilinear_lookup(self.table, x, self._resolutions[:k], self._first_rows[:k], self.cfg.bound)
+        feats = feats.reshape(x.shape[0], -1)                                  # [N, k*F], level-major
+        n_off = self.cfg.n_levels - k
         if n_off:
-            feats.append(g.new_zeros(n_off * self.cfg.features_per_level, n))
-        return torch.cat(feats, 0).t()
+            feats = torch.cat([feats, feats.new_zeros(x.shape[0], n_off * self.cfg.features_per_level)], 1)
+        return feats
 
 
 def sphere_sdf(x: Tensor, radius: float | Tensor = 0.5) -> Tensor:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from nepf_core.fields.grid_encoding import MultiResGrid
+
 from nepf_core.data.scene import Scene
 from nepf_core.model import NePFModel
 from nepf_core.rays import foreground_peaks, unlit_threshold
@@ -24,9 +26,10 @@ def resolve_device(device: str) -> torch.device:
 def param_groups(model: NePFModel, lr: float, lr_grid: float) -> list[dict]:
     """Two groups: grid-encoding tables (``lr_grid``) and everything else (``lr``); each keeps its
     ``base_lr`` for the schedule."""
+    tables = {id(m.table) for m in model.modules() if isinstance(m, MultiResGrid)}
     grid, other = [], []
-    for name, p in model.named_parameters():
-        (grid if ".grid" in name or name.startswith("sdf.encoding") else other).append(p)
+    for p in model.parameters():
+        (grid if id(p) in tables else other).append(p)
     groups = [{"params": other, "lr": lr, "base_lr": lr}]
     if grid:
         groups.append({"params": grid, "lr": lr_grid, "base_lr": lr_grid})
