@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from nepf_core.fields.trilinear import trilinear_lookup
+from nepf_core.fields.trilinear import LevelLayout, trilinear_lookup
 
 __all__ = ["GridConfig", "MultiResGrid", "sphere_sdf"]
 
@@ -83,8 +83,7 @@ class MultiResGrid(nn.Module):
                                              for r in self.resolutions]).contiguous())
         sizes = [r ** 3 for r in self.resolutions]
         self.first_rows = [sum(sizes[:level]) for level in range(len(sizes))]
-        self.register_buffer("_resolutions", torch.tensor(self.resolutions), persistent=False)
-        self.register_buffer("_first_rows", torch.tensor(self.first_rows), persistent=False)
+        self.layout = LevelLayout(self.resolutions, self.first_rows)
         self.active_levels = cfg.n_levels
         self.set_active_levels(max(1, min(cfg.start_levels, cfg.n_levels)))
 
@@ -143,7 +142,7 @@ class MultiResGrid(nn.Module):
     def forward(self, x: Tensor) -> Tensor:
         """Encode ``x [N,3]`` -> ``[N, n_levels*F]`` (dtype of the grids)."""
         k = self.active_levels
-        feats = trilinear_lookup(self.table, x, self._resolutions[:k], self._first_rows[:k], self.cfg.bound)
+        feats = trilinear_lookup(self.table, x, self.layout, k, self.cfg.bound)
         feats = feats.reshape(x.shape[0], -1)                                  # [N, k*F], level-major
         n_off = self.cfg.n_levels - k
         if n_off:

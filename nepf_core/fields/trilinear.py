@@ -38,34 +38,57 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["corner_rows_and_weights", "trilinear_lookup"]
+__all__ = ["LevelLayout", "corner_rows_and_weights", "trilinear_lookup"]
 
 # the 8 corners of a cell as (dx, dy, dz), x fastest
 _CORNERS = ((0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0), (0, 0, 1), (1, 0, 1), (0, 1, 1), (1, 1, 1))
 
 
-def corner_rows_and_weights(x: Tensor, resolutions: Tensor, first_rows: Tensor, bound: float) -> tuple[Tensor, Tensor]:
-    """Rows and weights of the 8 nodes around each point in each of ``L`` levels (module docstring).
+class LevelLayout:
+    """Per-level constants of the lookup, cached per (levels, dtype, device) so that they follow
+    the inputs: resolutions ``[L]``, the table row of each level's node ``(0, 0, 0)``, the row
+    offsets of a cell's 8 corners ``[8, L]``."""
 
-    ``x [N, 3]``; ``resolutions [L]`` (``R_l``, int64, >= 2); ``first_rows [L]`` (the table row of
-    level ``l``'s node ``(0, 0, 0)``) -> ``(rows [N, L, 8] int64, weights [N, L, 8])``, the weights
-    in ``x``'s dtype, summing to 1 per point and level, differentiable in ``x``."""
-    r = resolutions.to(x.dtype)                                          # [L]
-    u = (x[:, None, :] / bound + 1.0) * (0.5 * (r - 1.0))[None, :, None]   # [N, L, 3]
-    u = torch.minimum(u.clamp_min(0.0), (r - 1.0)[None, :, None])
-    i0 = torch.minimum(u.detach().floor(), (r - 2.0)[None, :, None])      # lower node
+    def __init__(self, resolutions: list[int], first_rows: list[int]) -> None:
+        self.resolutions, self.first_rows = list(resolutions), list(first_rows)
+        self.n_rows = first_rows[-1] + resolutions[-1] ** 3
+        self._cache: dict = {}
+
+    def constants(self, n_levels: int, dtype: torch.dtype, device: torch.device) -> dict:
+        key = (n_levels, dtype, device)
+        if key not in self._cache:
+            # integer row arithmetic in floating point is exact below 2^24 rows (fp32) / 2^53 (fp64)
+            ft = torch.float32 if self.n_rows < 2 ** 24 else torch.float64
+            r = torch.tensor(self.resolutions[:n_levels], dtype=ft, device=device)                    # [L]
+            corners = torch.tensor(_CORNERS, dtype=ft, device=device)                                 # [8, 3]
+            stride = torch.stack([torch.ones_like(r), r, r * r], -1)                                 # [L, 3]
+            self._cache[key] = {
+                "half_span": (0.5 * (r - 1.0))[:, None].to(dtype),                                   # [L, 1]
+                "hi": (r - 1.0)[:, None].expand(-1, 3).to(dtype).contiguous(),                       # [L, 3]
+                "hi_cell": (r - 2.0)[:, None].expand(-1, 3).to(dtype).contiguous(),                  # [L, 3]
+                "stride": stride, "first": torch.tensor(self.first_rows[:n_levels], dtype=ft, device=device),
+                "corner_offsets": corners @ stride.t(),                                              # [8, L]
+            }
+        return self._cache[key]
+
+
+def corner_rows_and_weights(x: Tensor, layout: LevelLayout, n_levels: int, bound: float) -> tuple[Tensor, Tensor]:
+    """Rows and weights of the 8 nodes around each point in the first ``n_levels`` levels.
+
+    ``x [N, 3]`` -> ``(rows [N, L, 8] int64, weights [N, L, 8])``, the weights in ``x``'s dtype,
+    summing to 1 per point and level, differentiable in ``x``; corners ordered x fastest."""
+    c = layout.constants(n_levels, x.dtype, x.device)
+    half = c["half_span"]
+    u = torch.addcmul(half, x[:, None, :], half / bound)                   # (x/b + 1)(R-1)/2   [N, L, 3]
+    u = torch.clamp(u, torch.zeros_like(c["hi"]), c["hi"])
+    i0 = torch.minimum(u.detach().floor(), c["hi_cell"])                  # the cell's lower node
     f = u - i0                                                             # [N, L, 3] in [0, 1]
-    i0 = i0.long()
-    rl = resolutions[None, :]
-    base = (i0[..., 2] * rl + i0[..., 1]) * rl + i0[..., 0] + first_rows[None, :]   # [N, L]
-    d = torch.tensor(_CORNERS, device=x.device)                           # [8, 3]
-    offsets = (d[None, :, 2] * resolutions[:, None] + d[None, :, 1]) * resolutions[:, None] + d[None, :, 0]   # [L, 8]
-    rows = base[..., None] + offsets                                       # [N, L, 8]
+    base = (i0.to(c["stride"].dtype) * c["stride"]).sum(-1) + c["first"]   # [N, L]
+    rows = (base[..., None] + c["corner_offsets"].t()).long()             # [N, L, 8]
     g = 1.0 - f
-    wx = torch.stack([g[..., 0], f[..., 0]], -1)                           # [N, L, 2]
-    wy = torch.stack([g[..., 1], f[..., 1]], -1)
-    wz = torch.stack([g[..., 2], f[..., 2]], -1)
-    w = (wz[..., :, None, None] * wy[..., None, :, None] * wx[..., None, None, :]).flatten(-3)   # [N, L, 8], x fastest
+    fx, fy, fz, gx, gy, gz = f[..., 0], f[..., 1], f[..., 2], g[..., 0], g[..., 1], g[..., 2]
+    wxy = torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], -1)            # [N, L, 4]
+    w = torch.cat([wxy * gz[..., None], wxy * fz[..., None]], -1)          # [N, L, 8]
     return rows, w
 
 
@@ -99,19 +122,18 @@ class _TableLookup(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             if table.grad is None:
                 table.grad = _zeroed_grad_buffer(table)
-            flat = (rows[:, :, None] * n_feat + torch.arange(n_feat, device=rows.device)).reshape(-1)   # [B*8*F]
-            table.grad.view(-1).index_add_(0, flat, (w[:, :, None] * grad_out[:, None, :]).reshape(-1))
+            table.grad.index_add_(0, rows.reshape(-1), (w[:, :, None] * grad_out[:, None, :]).reshape(-1, n_feat))
         grad_w = None
         if ctx.needs_input_grad[2]:
             grad_w = (table.detach()[rows] * grad_out[:, None, :]).sum(-1)                              # [B, 8]
         return None, None, grad_w
 
 
-def trilinear_lookup(table: Tensor, x: Tensor, resolutions: Tensor, first_rows: Tensor, bound: float) -> Tensor:
+def trilinear_lookup(table: Tensor, x: Tensor, layout: LevelLayout, n_levels: int, bound: float) -> Tensor:
     """``table [sum_l R_l^3, F]`` (the levels' tables stacked), ``x [N, 3]`` -> ``[N, L, F]``:
     the trilinear interpolation of the module docstring in each level, in one lookup; the table's
     gradient goes into ``table.grad`` (rows read only), ``x``'s through autograd."""
-    rows, w = corner_rows_and_weights(x.to(table.dtype), resolutions, first_rows, bound)
+    rows, w = corner_rows_and_weights(x.to(table.dtype), layout, n_levels, bound)
     n, n_levels = rows.shape[:2]
     rows, w = rows.reshape(n * n_levels, 8), w.reshape(n * n_levels, 8)
     if torch.is_grad_enabled() and (table.requires_grad or w.requires_grad):
