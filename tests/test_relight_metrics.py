@@ -31,12 +31,29 @@ def test_relight_psnr_hand_worked():
     assert value == pytest.approx(5.1514, abs=1e-4)
 
 
-def test_relight_scale_is_fitted_on_unclipped_values():
-    # GT (2, 0) (over-exposed, linear), prediction (1, 1): s = 2 / 2 = 1 on the unclipped values
-    # (on clipped GT it would be 1/2); aligned (1, 1) against sRGB(clip(GT)) = (1, 0): MSE 1/2.
+def test_relight_scale_is_fitted_on_the_displayed_range():
+    # GT (2, 0) (over-exposed, linear), prediction (1, 1): on the displayed GT (1, 0),
+    # s = (1*1 + 0*1) / (1 + 1) = 1/2, and 0.5 * 1 < 1 saturates nothing, so s stays 1/2
+    # (the unclipped fit would say 2/2 = 1); aligned (0.5, 0.5) -> MSE 0.305393 as above.
     value, scale = relight_psnr(_img(1.0, 1.0), _img(2.0, 0.0), np.ones((1, 1, 2)))
-    assert scale.tolist() == pytest.approx([1.0] * 3)
-    assert value == pytest.approx(10 * math.log10(2), abs=1e-9)
+    assert scale.tolist() == pytest.approx([0.5] * 3)
+    assert value == pytest.approx(-10 * math.log10(((1 - SRGB_HALF) ** 2 + SRGB_HALF ** 2) / 2), abs=1e-9)
+
+
+def test_one_hot_pixel_does_not_decide_the_scale():
+    # 99 pixels predicted 1 where GT is 0.5, and one highlight predicted 1000 where GT is 1000.
+    # Unclipped least squares: s = (99*0.5 + 1000*1000) / (99 + 1000^2) = 0.99995, so the 99
+    # pixels show 1.0 against 0.5. Displayed range: round 1 on clip(GT) gives
+    # s = (49.5 + 1000) / (99 + 1e6) = 1.0495e-3, the highlight shows 1.0495 >= 1 with GT >= 1
+    # and leaves the fit; round 2: s = 49.5 / 99 = 1/2, the highlight shows 500 and stays out:
+    # every pixel then matches, 100 dB (MSE floored at 1e-10).
+    gt, pred = _img(*([0.5] * 99 + [1000.0])), _img(*([1.0] * 99 + [1000.0]))
+    alpha = np.ones((1, 1, 100))
+    unclipped = channel_scale(pred, gt, np.ones(pred.shape[:-1], bool))
+    assert unclipped[0] == pytest.approx((99 * 0.5 + 1e6) / (99 + 1e6))
+    value, scale = relight_psnr(pred, gt, alpha)
+    assert scale.tolist() == pytest.approx([0.5] * 3)
+    assert value == pytest.approx(100.0)
 
 
 def test_relight_scale_per_channel_over_all_lights_and_views():

@@ -67,7 +67,8 @@ def eval_section(run, test, renders: dict, test_images: np.ndarray, test_masks: 
         res.update(relight_scores(run, relight_dir, test, Path(out_dir) / "relight", device, max_side))
     res["relight_conventions"] = (
         "relight_psnr: nepf relight under --relight's lights at --test's cameras, one least-squares scale per "
-        "colour channel over all lights, views and GT-alpha > 0.5 pixels (unclipped linear), then clip, sRGB, PSNR; "
-        "albedo_psnr(_lit): the same alignment on the albedo over the GT foreground (its lit pixels); "
+        "colour channel over all lights, views and GT-alpha > 0.5 pixels, fitted on the displayed range (GT "
+        "clipped to [0, 1], values saturated on both sides left out), then clip, sRGB, PSNR; "
+        "albedo_psnr(_lit): a least-squares per-channel alignment on the albedo over the GT foreground (its lit pixels); "
         "roughness/metallic MAE over the GT foreground; normal_mae_deg: mean angle to normal_world")
     return res

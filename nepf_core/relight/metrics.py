@@ -1,11 +1,11 @@
 """Relighting and material scores against ground truth (``nepf eval --relight --gt-maps``).
 
-* **relight PSNR**: one least-squares scale per colour channel,
-  ``s_c = sum(g_c p_c) / sum(p_c^2)``, fitted on the *unclipped* linear values over all lights,
-  views and pixels with GT alpha > 0.5 (albedo and light intensity share a scale, as in TensoIR);
-  then ``PSNR(srgb(clip(s p, 0, 1)), srgb(clip(g, 0, 1)))`` over the same pixels (all three
-  channels of each).
-* **albedo PSNR**: the same alignment and PSNR on the albedo maps
+* **relight PSNR**: one scale per colour channel (albedo and light intensity share a scale, as
+  in TensoIR), fitted on the *displayed* range (:func:`displayed_range_scale`) over all lights,
+  views and pixels with GT alpha > 0.5; then ``PSNR(srgb(clip(s p, 0, 1)), srgb(clip(g, 0, 1)))``
+  over the same pixels (all three channels of each).
+* **albedo PSNR**: a per-channel least-squares alignment (:func:`channel_scale`; an albedo has no
+  highlights, so nothing saturates) and PSNR on the albedo maps
   (:func:`nepf_core.evaluate.albedo_psnr_aligned`), over the GT foreground and over its lit
   pixels (those of the test image with ``max_c L >= rel * q99``, the training rule
   :func:`nepf_core.rays.unlit_threshold`).
@@ -35,6 +35,34 @@ def channel_scale(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> np.ndar
     return np.where(den > 1e-12, (p * g).sum(0) / np.maximum(den, 1e-12), 1.0)
 
 
+def displayed_range_scale(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, rounds: int = 5) -> np.ndarray:
+    """Per-channel scale fitted on what a display shows: ``pred, gt [..., 3]`` linear, ``mask
+    [...]`` bool -> ``[3]``.
+
+        s_c = sum_{i in K_c} clip(g_ic, 0, 1) p_ic / sum_{i in K_c} p_ic^2,
+        K_c = {i in mask : not (s_c p_ic >= 1 and g_ic >= 1)}
+
+    starting from all of ``mask`` and repeated ``rounds`` times (the scale moves which values
+    saturate). Why: a glossy highlight reaches 100-1000x white in linear units; an unclipped
+    least-squares fit is then decided by those few values (a lobe shaded at the pixel centre
+    against a ground truth that averages it over the pixel gave half the right scale), while the
+    PSNR compares the clipped images, where a value saturated on both sides agrees whatever the
+    scale."""
+    p = pred[mask].astype(np.float64)
+    g = gt[mask].astype(np.float64)
+    g_shown = np.clip(g, 0.0, 1.0)
+    keep = np.ones_like(p, dtype=bool)
+    s = np.ones(p.shape[-1])
+    for _ in range(max(1, rounds)):
+        den = np.where(keep, p * p, 0.0).sum(0)
+        s = np.where(den > 1e-12, np.where(keep, p * g_shown, 0.0).sum(0) / np.maximum(den, 1e-12), 1.0)
+        new_keep = ~((p * s >= 1.0) & (g >= 1.0))
+        if np.array_equal(new_keep, keep):
+            break
+        keep = new_keep
+    return s
+
+
 def relight_psnr(pred: np.ndarray, gt: np.ndarray, gt_alpha: np.ndarray) -> tuple[float, np.ndarray]:
     """Relight PSNR (module docstring): ``pred, gt [K, V, H, W, 3]`` linear, ``gt_alpha [V, H, W]``.
     Returns ``(psnr_db, scale [3])``."""
@@ -42,7 +70,7 @@ def relight_psnr(pred: np.ndarray, gt: np.ndarray, gt_alpha: np.ndarray) -> tupl
         raise ValueError(f"relit images {tuple(pred.shape)} and ground truth {tuple(gt.shape)} differ in shape "
                          "(lights, views or resolution)")
     mask = np.broadcast_to(gt_alpha > FOREGROUND_ALPHA, pred.shape[:-1])
-    s = channel_scale(pred, gt, mask)
+    s = displayed_range_scale(pred, gt, mask)
     a = srgb_np(np.clip(pred.astype(np.float64) * s, 0.0, 1.0))
     return psnr(a[mask], srgb_np(gt.astype(np.float64))[mask]), s
 
