@@ -46,7 +46,15 @@ def sdf_gradient_fd(
 
     For a grid SDF use ``eps`` ~ ``0.5 * grid.active_cell_size()`` (see docs/FAST.md).
     """
-    n = x.shape[0]
+    pts, offsets = fd_stencil(x, eps, scheme, center)
+    return gradient_from_stencil(sdf_fn(pts).reshape(-1), x.shape[0], offsets, eps, scheme, center)
+
+
+def fd_stencil(x: Tensor, eps: float, scheme: str = "central", center: str = "eval") -> tuple[Tensor, Tensor]:
+    """The points :func:`sdf_gradient_fd` evaluates: ``x [N, 3]`` -> ``(pts [k N (+ N), 3],
+    offsets [k, 3])``, offset-major (``pts[i N + n] = x[n] + offsets[i]``), ``x`` itself
+    appended when ``center="eval"``. Callers that evaluate the SDF at other points too can
+    batch them with these in one call and hand the values to :func:`gradient_from_stencil`."""
     if scheme == "central":
         e = torch.eye(3, dtype=x.dtype, device=x.device) * eps
         offsets = torch.cat([e, -e], 0)  # [6,3]: +x,+y,+z,-x,-y,-z
@@ -54,17 +62,23 @@ def sdf_gradient_fd(
         offsets = torch.tensor(TETRA_DIRS, dtype=x.dtype, device=x.device) * eps  # [4,3]
     else:
         raise ValueError(f"unknown scheme {scheme!r} (central | tetra)")
-    k = offsets.shape[0]
-    pts = (x.unsqueeze(0) + offsets.unsqueeze(1)).reshape(k * n, 3)
+    if center not in ("eval", "mean"):
+        raise ValueError(f"unknown center {center!r} (eval | mean)")
+    pts = (x.unsqueeze(0) + offsets.unsqueeze(1)).reshape(-1, 3)
     if center == "eval":
         pts = torch.cat([pts, x], 0)
-    elif center != "mean":
-        raise ValueError(f"unknown center {center!r} (eval | mean)")
-    f = sdf_fn(pts).reshape(-1)
+    return pts, offsets
+
+
+def gradient_from_stencil(f: Tensor, n: int, offsets: Tensor, eps: float, scheme: str = "central",
+                          center: str = "eval") -> tuple[Tensor, Tensor]:
+    """``(grad [N, 3], sdf [N])`` from the SDF values ``f`` at :func:`fd_stencil`'s points
+    (the formulas of :func:`sdf_gradient_fd`)."""
+    k = offsets.shape[0]
     fs = f[: k * n].view(k, n)
     if scheme == "central":
         grad = (fs[:3] - fs[3:]).t() / (2.0 * eps)
     else:
         grad = (fs.t() @ offsets) / (4.0 * eps * eps)  # sum_i f_i k_i eps / (4 eps^2)
-    sdf = f[k * n :] if center == "eval" else fs.mean(0)
+    sdf = f[k * n : (k + 1) * n] if center == "eval" else fs.mean(0)
     return grad, sdf

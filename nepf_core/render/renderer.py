@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from nepf_core import bsdf
-from nepf_core.fields.fd_normals import sdf_gradient_fd
+from nepf_core.fields.fd_normals import fd_stencil, gradient_from_stencil, sdf_gradient_fd
 from nepf_core.fields.gradients import sdf_gradient_autograd, sdf_gradient_central, sdf_hessian_norm
 from nepf_core.rays import RayBatch
 from nepf_core.render.neus import (alpha_from_sdf, annealed_cos, max_weight_index, surface_crossing_t,
@@ -292,11 +292,20 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     }
     if z_mat is not None:
         surf["material_logits"] = z_mat[k]
+    xj = fj = None   # the albedo prior's jittered points and their SDF features
     if cfg.surface_refine and cfg.alpha_mode == "sample":
         # the same quantities at the zero crossing inside the max-weight section
         xr = o + d * surface_crossing_t(z, f, idx)[:, None]
-        _, fr = model.sdf(xr)
-        gr, _ = sdf_gradient_fd(sdf_only, xr, model.sdf.fd_step(), scheme="tetra", center="mean")
+        queries = [xr]
+        if train and cfg.albedo_smooth_sigma > 0:   # the albedo prior's jittered points, in the same SDF call
+            xj = xr + cfg.albedo_smooth_sigma * torch.randn(xr.shape, device=o.device, dtype=xr.dtype)
+            queries.append(xj)
+        stencil, offsets = fd_stencil(xr, model.sdf.fd_step(), scheme="tetra", center="mean")
+        f_all, feat_all = model.sdf(torch.cat([stencil] + queries, 0))
+        gr, _ = gradient_from_stencil(f_all, R, offsets, model.sdf.fd_step(), scheme="tetra", center="mean")
+        fr = feat_all[stencil.shape[0]:stencil.shape[0] + R]
+        if xj is not None:
+            fj = feat_all[stencil.shape[0] + R:]
         nr = gr / gr.norm(dim=-1, keepdim=True).clamp_min(1e-8)
         unlit_ray = rays.unlit if (train and rays.unlit is not None) else None
         rgb_surf, ld_r, int_r, alb_r, rough_r, metal_r, z_r = _shade_points(model, cfg, shading, xr, d, nr, fr,
@@ -306,9 +315,10 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         if z_r is not None:
             surf["material_logits"] = z_r
     if train and cfg.albedo_smooth_sigma > 0:
-        xj = surf["x"].detach() + cfg.albedo_smooth_sigma * torch.randn(surf["x"].shape, device=o.device,
-                                                                        dtype=surf["x"].dtype)
-        _, fj = model.sdf(xj)
+        if xj is None:
+            xj = surf["x"].detach() + cfg.albedo_smooth_sigma * torch.randn(surf["x"].shape, device=o.device,
+                                                                            dtype=surf["x"].dtype)
+            _, fj = model.sdf(xj)
         with torch.autocast(device_type=xj.device.type, dtype=torch.bfloat16,
                             enabled=cfg.amp_heads and xj.device.type == "cuda"):
             a_j, r_j, m_j = model.material(xj, surf["normal"].detach(), fj)
