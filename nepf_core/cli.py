@@ -26,7 +26,7 @@ def cmd_fit(a) -> int:
                           device=a.device, callbacks=cb, resume=a.resume, export=not a.no_export,
                           texture_size=a.texture_size, max_faces=a.faces, test_dir=a.eval_test,
                           gt_mesh=a.gt_mesh, gt_albedo=a.gt_albedo, max_side=a.max_side,
-                          holdout_every=a.holdout_every, log=bar.write)
+                          holdout_every=a.holdout_every, up_axis=a.up, log=bar.write)
     finally:
         bar.close()
     print(json.dumps({k: summary[k] for k in ("status", "step", "total", "wall_s", "manifest", "split")}, indent=2))
@@ -155,9 +155,35 @@ def cmd_eval(a) -> int:
 def cmd_export(a) -> int:
     from nepf_core.jobs import export_run
     p = export_run(a.run, device=a.device, texture_size=a.texture_size, max_faces=a.faces,
-                   mesh_resolution=a.resolution, previews=not a.no_previews)
+                   mesh_resolution=a.resolution, previews=not a.no_previews, up_axis=a.up)
     print(f"wrote {p}")
     return 0
+
+
+def _up_axis_type(value: str) -> str:
+    from nepf_core.up_axis import parse_up_axis
+    try:
+        return parse_up_axis(value) or "auto"
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _join_up_values(argv: list[str]) -> list[str]:
+    """``--up -z`` as ``--up=-z``: argparse reads a value starting with ``-`` as an option."""
+    out: list[str] = []
+    for arg in argv:
+        if out and out[-1] == "--up" and arg.lower() in ("-x", "-y", "-z"):
+            out[-1] = f"--up={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
+def _up_arg(p: argparse.ArgumentParser, default_help: str) -> None:
+    from nepf_core.up_axis import UP_CHOICES
+    p.add_argument("--up", default=None, type=_up_axis_type, metavar="AXIS",
+                   help="the input world's up axis, one of " + ", ".join(UP_CHOICES) + "; the GLB, lights.json and "
+                        "light_field.json are rotated so that it becomes glTF's +Y (" + default_help + ")")
 
 
 def _max_side_arg(p: argparse.ArgumentParser) -> None:
@@ -188,6 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--texture-size", type=int, default=None, choices=[256, 512, 1024, 2048],
                    help="baked texture size (default: 1024; 256 for tiny)")
     p.add_argument("--faces", type=int, default=None, help="face budget of the exported mesh (default 100k; 5k for tiny)")
+    _up_arg(p, "default auto: the mean of the cameras' up vectors, snapped to the nearest axis")
     _max_side_arg(p)
     _device_arg(p)
     p.set_defaults(fn=cmd_fit)
@@ -238,6 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--faces", type=int, default=100_000)
     p.add_argument("--resolution", type=int, default=256, help="marching-cubes resolution")
     p.add_argument("--no-previews", action="store_true")
+    _up_arg(p, "default: an earlier --up of this run (frame.json), else auto from the cameras")
     _device_arg(p)
     p.set_defaults(fn=cmd_export)
 
@@ -284,7 +312,7 @@ def main(argv: list[str] | None = None) -> int:
         mod, fn = SERVICE_COMMANDS[argv[0]]
         return _delegate(mod, fn, argv[1:])
     ap = build_parser()
-    a = ap.parse_args(argv)
+    a = ap.parse_args(_join_up_values(argv))
     try:
         return int(a.fn(a) or 0)
     except DatasetError as e:

@@ -143,3 +143,32 @@ def test_job_normalisation_reads_only_fields_the_api_sends():
     event_keys = re.findall(r"'(\w+)'", re.search(r"for \(const k of \[([^\]]*)\]\)",
                                                    _function_source(live, "applyEvent")).group(1))
     assert event_keys and set(event_keys) <= set(JobPublic.model_fields), event_keys
+
+
+FRAME_SCRIPT = r"""
+import * as THREE from 'three';
+import { frameRotation, upFromFrame } from './viewer3d.js';
+const input = JSON.parse(await new Promise((res) => { let s = ''; process.stdin.on('data', (d) => s += d); process.stdin.on('end', () => res(s)); }));
+const r = frameRotation(input.frame);
+const p = new THREE.Vector3(...input.point).applyMatrix3(r);
+process.stdout.write(JSON.stringify({ up: upFromFrame(input.frame), point: p.toArray(),
+  none: frameRotation({}) === null && frameRotation({ gltf_from_world: [[1, 0], [0, 1]] }) === null,
+  legacyUp: upFromFrame({}) }));
+"""
+
+
+def test_viewer_reads_the_manifest_frame_as_the_export_writes_it():
+    """The manifest's ``frame`` (``UpFrame.to_json``) in the viewer: up +Y, and a world point
+    through ``gltf_from_world`` as numpy maps it (three.js' Matrix3.set takes rows)."""
+    from nepf_core.up_axis import UpFrame
+
+    frame = UpFrame("+z", "cameras", (0.0, 0.1, 0.9)).to_json()
+    node = shutil.which("node")
+    assert node, "node is required to build and test the web viewer"
+    point = [1.0, 2.0, 3.0]
+    r = subprocess.run([node, "--input-type=module", "-e", FRAME_SCRIPT], input=json.dumps({"frame": frame, "point": point}),
+                       cwd=SRC, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["up"] == "y" and out["none"] is True and out["legacyUp"] is None
+    np.testing.assert_allclose(out["point"], np.asarray(frame["gltf_from_world"]) @ point)   # (1, 3, -2)

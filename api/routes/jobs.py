@@ -109,7 +109,8 @@ MULTIPART_DOC = {
                            'JSON object: {"preset": "fast|paper|tiny", "iters": int, '
                            '"time_budget_s": number, "name": str, "max_image_side": int (<= NEPF_MAX_IMAGE_SIDE), '
                            '"holdout_every": 0 or 2..n_views/2 (default 8 for 16+ views, else 0), '
-                           '"texture_size": 256|512|1024|2048, "max_faces": 1000..2000000}; see JobConfig'},
+                           '"texture_size": 256|512|1024|2048, "max_faces": 1000..2000000, '
+                           '"up_axis": "auto|+x|-x|+y|-y|+z|-z"}; see JobConfig'},
             }}}},
     }
 }
@@ -348,7 +349,9 @@ def list_artifacts(job_id: str, svc: ServiceDep, owner: OwnerDep):
         p = a["path"]
         items.append(Artifact(kind=a.get("kind"), path=p, bytes=a.get("bytes"), sha256=a.get("sha256"),
                               content_type=content_type_for(p), url=f"/jobs/{job.id}/artifacts/{p}"))
-    return ArtifactList(artifacts=items, manifest=man is not None, status=job.status)
+    frame = (man or {}).get("frame")
+    return ArtifactList(artifacts=items, manifest=man is not None, status=job.status,
+                        frame=frame if isinstance(frame, dict) else None)
 
 
 def safe_artifact_path(base: Path, rel: str) -> Optional[Path]:

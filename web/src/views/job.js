@@ -207,6 +207,7 @@ export function renderJob(root, id) {
       const buf = await (await api.artifact(id, 'asset.glb')).arrayBuffer();
       if (stopped) return;
       viewer = new AssetViewer(viewerHost, { onChange: () => syncControls() });
+      viewer.setFrame(list?.frame); // the manifest's frame: the GLB is +Y up, world records are rotated into it
       await viewer.loadGLB(buf);
       if (stopped) return;
       viewerMsg.hidden = true;
