@@ -22,7 +22,7 @@ SCRIPT = r"""
 import { parseLightField, parseLights, colormap } from './viewer3d.js';
 import { normJob, applyEvent } from './live.js';
 import { validationErrors, errorSummary } from './api.js';
-import { metricsToCsv } from './util.js';
+import { metricsToCsv, filenameFromDisposition } from './util.js';
 const input = JSON.parse(await new Promise((res) => { let s = ''; process.stdin.on('data', (d) => s += d); process.stdin.on('end', () => res(s)); }));
 const lf = parseLightField(input.light_field);
 const lfRecords = parseLightField({ samples: input.light_field.points.map((p, i) => ({ position: p, direction: input.light_field.directions[i], intensity: input.light_field.intensity[i] })) });
@@ -40,6 +40,7 @@ const out = {
   errors: validationErrors(input.error_body), summary: errorSummary(input.error_body, 422),
   csv: metricsToCsv(input.records),
   cmap: [colormap(0), colormap(1)],
+  names: input.dispositions.map(filenameFromDisposition),
 };
 process.stdout.write(JSON.stringify(out));
 """
@@ -89,8 +90,15 @@ def test_viewer_parses_what_export_and_api_write(tmp_path):
     records = [{"step": 5, "wall_s": 1.0, "kind": "train", "loss": 0.5, "loss_r": 0.25},
                {"step": 50, "wall_s": 9.0, "kind": "sync", "psnr_r": 20.0, "note": "a, \"quoted\""}]
 
+    from api.downloads import content_disposition
+    dispositions = [content_disposition("Kürbis \"groß\" 50%; x", "a" * 32, "textures/orm.png"),
+                    content_disposition(None, "b" * 32, "asset.glb"), 'attachment; filename="plain.txt"',
+                    "attachment; filename=bare.bin", None]
     out = run_node({"light_field": lf, "lights_point": lights_point, "lights_directional": lights_dir,
-                    "job": job, "error_body": err, "records": records})
+                    "job": job, "error_body": err, "records": records, "dispositions": dispositions})
+    # the viewer saves a download under the API's name (util.js filenameFromDisposition)
+    assert out["names"] == ['Kürbis _groß_ 50%; x-textures-orm.png', "nepf-bbbbbbbb-asset.glb", "plain.txt",
+                            "bare.bin", None]
 
     assert out["lf"]["n"] == n and out["lfRecords"] == n
     np.testing.assert_allclose(out["lf"]["p0"], pts[0], atol=1e-5)

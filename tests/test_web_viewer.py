@@ -399,7 +399,8 @@ def test_job_page_charts_3d_channels_light_lightfield_download(browser, backend,
     with page.expect_download() as dl:
         page.locator('[data-download="asset.glb"]').click()
     got = Path(dl.value.path()).read_bytes()
-    assert dl.value.suggested_filename == "asset.glb"
+    # saved under the API's Content-Disposition name: "<job name>-<artifact>"
+    assert dl.value.suggested_filename == "sphere (web test)-asset.glb"
     assert got == api_glb and got[:4] == b"glTF"
     for p in ("textures/base_color.png", "textures/orm.png", "light_field.json", "metrics.jsonl"):
         assert page.locator(f'[data-download="{p}"]').count() == 1, p

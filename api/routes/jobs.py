@@ -25,6 +25,7 @@ from jobstore.queue import enqueue
 
 from ..auth import check_ticket, make_ticket
 from ..deps import CredsDep, OwnerDep, ServiceDep, owner_from_header
+from ..downloads import content_disposition
 from ..errors import ApiError, not_found
 from ..metrics_index import METRICS
 from ..schemas import (Artifact, ArtifactList, ErrorBody, JobList, JobPublic, MetricsPage, Ticket)
@@ -373,14 +374,18 @@ def safe_artifact_path(base: Path, rel: str) -> Optional[Path]:
 
 @router.get("/jobs/{job_id}/artifacts/{path:path}", responses={**ERRORS, 200: {
     "content": {t: {} for t in ARTIFACT_MEDIA_TYPES}, "description": "The file, with its content type"}},
-    response_class=FileResponse, summary="Download one artifact (asset.glb, textures, previews, metrics...)")
+    response_class=FileResponse, summary="Download one artifact (asset.glb, textures, previews, metrics...) as "
+                                         "an attachment named <job name>-<artifact>; Range and ETag supported")
 def get_artifact(job_id: str, path: str, svc: ServiceDep, owner: OwnerDep):
     job = _load(svc, owner, job_id)
     target = safe_artifact_path(run_dir(svc, job.id), path)
     if target is None:
         raise not_found("artifact")
-    return FileResponse(target, media_type=content_type_for(target.name),
-                        filename=None, headers={"Cache-Control": "private, max-age=0"})
+    # FileResponse answers Range (206, If-Range) and sends ETag / Last-Modified; the name a browser
+    # or a script saves the file under: "<job name>-<artifact>" (api/downloads.py)
+    return FileResponse(target, media_type=content_type_for(target.name), filename=None,
+                        headers={"Cache-Control": "private, max-age=0",
+                                 "Content-Disposition": content_disposition(job.name, job.id, path)})
 
 
 # ------------------------------------------------------------------------------- control
