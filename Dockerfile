@@ -2,8 +2,13 @@
 # NePF service image: one image for the API (`nepf serve`) and the worker (`nepf worker`);
 # docker-compose.yml builds it once and runs both from it. See docs/SERVICE.md.
 #   CPU:  docker build -t nepf .
-#   CUDA: docker build -t nepf:cuda --build-arg TORCH_INDEX_URL=https://download.pytorch.org/whl/cu121 .
-# torch: the version pinned in pyproject.toml (the only place it is written), from TORCH_INDEX_URL.
+#   CUDA: docker build -t nepf:cuda --build-arg TORCH_INDEX_URL=https://pypi.org/simple .
+# torch: the version pinned in constraints.txt (pyproject.toml only bounds it), from TORCH_INDEX_URL:
+# PyTorch's CPU index by default; PyPI's default Linux x86_64 wheel is a CUDA build that brings its
+# own CUDA runtime (nvidia-* wheels), so it exists for every pinned version and needs only a host
+# NVIDIA driver new enough for it (`python -c "import torch; print(torch.version.cuda)"` in the
+# image says which CUDA). A CUDA-specific index (https://download.pytorch.org/whl/cuXYZ) works too
+# when it carries the pinned version; an old one (cu121 stops at torch 2.5) makes the build fail.
 
 # ---- web viewer (static files, served by the API at /) ------------------------------------
 FROM node:22-slim AS web
@@ -31,16 +36,14 @@ RUN apt-get update \
       libgl1 libglib2.0-0 libxrender1 \
  && rm -rf /var/lib/apt/lists/* /tmp/apt-packages.txt
 WORKDIR /app
-COPY pyproject.toml ./
-# torch first (its own layer): the pinned version from pyproject.toml, CPU or CUDA wheel
-RUN pip install --index-url "${TORCH_INDEX_URL}" "$(python -c 'import tomllib; \
-deps = tomllib.load(open("pyproject.toml", "rb"))["project"]["dependencies"]; \
-print(next(d for d in deps if d.startswith("torch")))')"
+COPY pyproject.toml constraints.txt ./
+# torch first (its own layer): the version pinned in constraints.txt, CPU or CUDA wheel
+RUN pip install --index-url "${TORCH_INDEX_URL}" -c constraints.txt torch
 COPY nepf_core ./nepf_core
 COPY jobstore ./jobstore
 COPY api ./api
 COPY worker ./worker
-RUN pip install ".[service]"
+RUN pip install -c constraints.txt ".[service]"
 COPY --from=web /web/dist ./web/dist
 RUN useradd --create-home --uid 1000 nepf && mkdir -p /data && chown nepf:nepf /data
 USER nepf

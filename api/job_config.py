@@ -2,7 +2,7 @@
 ``invalid_config`` naming the key, the allowed values and why.
 
 Keys (all optional): ``preset``, ``iters``, ``time_budget_s``, ``name``, ``max_image_side``,
-``holdout_every``, ``texture_size``, ``max_faces`` (docs/SERVICE.md, "Job options").
+``holdout_every``, ``texture_size``, ``max_faces``, ``up_axis`` (docs/SERVICE.md, "Job options").
 :func:`parse_config` checks what needs no dataset; :func:`resolve_holdout_every` the rest once
 the validator has counted the views. Nothing here imports ``nepf_core``.
 """
@@ -18,13 +18,13 @@ from .settings import Settings
 
 def parse_config(raw: Optional[bytes], settings: Settings) -> dict:
     """The job config (every key optional): ``preset``, ``iters``, ``time_budget_s``, ``name``,
-    ``max_image_side``, ``holdout_every``, ``texture_size``, ``max_faces``.
+    ``max_image_side``, ``holdout_every``, ``texture_size``, ``max_faces``, ``up_axis``.
 
     ``max_image_side``: the working resolution the job trains at, at most the ceiling
     ``NEPF_MAX_IMAGE_SIDE`` (None: the ceiling). ``holdout_every``: its type and sign here; its
     upper bound and its default depend on the view count, see :func:`resolve_holdout_every`.
     ``texture_size`` / ``max_faces``: the export's sizes, overriding ``NEPF_EXPORT_TEXTURE_SIZE``
-    / ``NEPF_EXPORT_MAX_FACES`` (None: those)."""
+    / ``NEPF_EXPORT_MAX_FACES`` (None: those). ``up_axis``: see :func:`check_up_axis`."""
     cfg: dict = {}
     if raw is not None and raw.strip():
         try:
@@ -34,7 +34,7 @@ def parse_config(raw: Optional[bytes], settings: Settings) -> dict:
         if not isinstance(cfg, dict):
             raise ApiError(422, "invalid_config", "'config' must be a JSON object")
     allowed = {"preset", "iters", "time_budget_s", "name", "max_image_side", "holdout_every", "texture_size",
-               "max_faces"}
+               "max_faces", "up_axis"}
     extra = sorted(set(cfg) - allowed)
     if extra:
         raise ApiError(422, "invalid_config",
@@ -56,7 +56,8 @@ def parse_config(raw: Optional[bytes], settings: Settings) -> dict:
     return {"preset": preset, "iters": iters,
             "time_budget_s": float(budget) if budget is not None else None, "name": name,
             "max_image_side": check_max_image_side(cfg.get("max_image_side"), settings),
-            **check_export_options(cfg), "holdout_every": check_holdout_type(cfg.get("holdout_every"))}
+            **check_export_options(cfg), "holdout_every": check_holdout_type(cfg.get("holdout_every")),
+            "up_axis": check_up_axis(cfg.get("up_axis"))}
 
 
 #: the baked texture sizes the exporter offers (``nepf fit --texture-size``)
@@ -82,6 +83,27 @@ def check_export_options(cfg: dict) -> dict:
         raise ApiError(422, "invalid_config", f"config.max_faces must be an integer in [{lo}, {hi}] "
                                               f"(got {json.dumps(faces)})")
     return {"texture_size": size, "max_faces": faces}
+
+
+#: a job's ``up_axis``: the input world's axis that the export turns into glTF's +Y; "auto" (or no
+#: key): the mean of the cameras' up vectors, snapped to the nearest axis. The same choices as
+#: ``nepf fit --up`` (``nepf_core.up_axis.UP_CHOICES``; tests/test_api_job_options.py checks both)
+UP_AXIS_CHOICES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
+
+
+def check_up_axis(value) -> Optional[str]:
+    """A job's ``up_axis``: ``"+x"`` ... ``"-z"`` (case and a missing ``+`` forgiven), or None
+    for ``"auto"`` / no key."""
+    if value is None:
+        return None
+    s = value.strip().lower() if isinstance(value, str) else None
+    if s is not None and len(s) == 1:
+        s = "+" + s
+    if s not in UP_AXIS_CHOICES:
+        raise ApiError(422, "invalid_config", f"config.up_axis must be one of {', '.join(UP_AXIS_CHOICES)}: the "
+                                              f"input world's up axis, which the GLB turns into glTF's +Y "
+                                              f"(got {json.dumps(value)})")
+    return None if s == "auto" else s
 
 
 def check_holdout_type(value) -> Optional[int]:

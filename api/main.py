@@ -59,7 +59,9 @@ def create_app(settings: Optional[Settings] = None, *, reconciler: Optional[bool
     if settings.cors_origins.strip():
         from fastapi.middleware.cors import CORSMiddleware
         app.add_middleware(CORSMiddleware, allow_origins=[o.strip() for o in settings.cors_origins.split(",")],
-                           allow_methods=["*"], allow_headers=["*"])
+                           allow_methods=["*"], allow_headers=["*"],
+                           # a viewer on another origin reads the download's name and its validators
+                           expose_headers=["Content-Disposition", "ETag", "Last-Modified", "Content-Range"])
     app.include_router(jobs.router)
 
     @app.get("/healthz", response_model=Health, tags=["health"], summary="The process is up")

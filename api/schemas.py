@@ -28,6 +28,11 @@ class JobConfig(BaseModel):
     max_faces: Optional[int] = Field(
         None, ge=1_000, le=2_000_000, description="Face budget of the exported mesh (None: NEPF_EXPORT_MAX_FACES, "
                                                   "else the preset's).")
+    up_axis: Optional[Literal["+x", "-x", "+y", "-y", "+z", "-z"]] = Field(
+        None, description="The input world's up axis, which the export turns into glTF's +Y (the GLB, lights.json "
+                          "and light_field.json; the manifest's frame records it). The request may say \"auto\" "
+                          "(or nothing): the mean of the cameras' up vectors, snapped to the nearest axis; the job "
+                          "then shows None.")
 
 
 class Progress(BaseModel):
@@ -96,6 +101,9 @@ class ArtifactList(BaseModel):
     artifacts: list[Artifact]
     manifest: bool = Field(description="False while the export manifest does not exist yet.")
     status: Status
+    frame: Optional[dict[str, Any]] = Field(
+        None, description="The manifest's frame: the input world's up axis (world_up, up_source) and the rotation "
+                          "gltf_from_world into the GLB's +Y-up frame (x_glb = R x_world); None before the export.")
 
 
 class Ticket(BaseModel):

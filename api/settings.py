@@ -13,6 +13,9 @@ from typing import Literal, Optional
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+# the one nepf_core module the API imports: two constants, stdlib only (no torch), shared with the CLI
+from nepf_core.limits import DEFAULT_IMAGE_SIDE, MAX_TOTAL_PIXELS
+
 
 class Settings(BaseSettings):
     """NePF service settings (environment prefix ``NEPF_``)."""
@@ -35,13 +38,13 @@ class Settings(BaseSettings):
     max_zip_entries: int = Field(10000, description="Cap on the number of entries in the zip.")
     max_image_pixels: int = Field(50_000_000, description="Pillow pixel limit (image-bomb guard).")
     max_total_pixels: int = Field(
-        400_000_000, ge=0, description="Cap on the decoded pixels of a dataset's images, all views together, "
+        MAX_TOTAL_PIXELS, ge=0, description="Cap on the decoded pixels of a dataset's images, all views together, "
                                        "read from the headers before decoding (0: none).")
     max_image_side: int = Field(
         1600, ge=0, description="Working-resolution ceiling: longer image sides are area-resampled down to it "
                                 "at load; a job's max_image_side may ask less, not more (0: full resolution).")
     default_image_side: int = Field(
-        800, ge=0, description="Working side of a job that asks none (capped by NEPF_MAX_IMAGE_SIDE; 0: the ceiling). "
+        DEFAULT_IMAGE_SIDE, ge=0, description="Working side of a job that asks none (capped by NEPF_MAX_IMAGE_SIDE; 0: the ceiling). "
                                "A CPU step draws a fixed number of rays, so a larger side only adds load time, memory "
                                "and evaluation cost within a job's budget (docs/SERVICE.md, 'Limits').")
     validate_timeout_s: float = Field(300.0, description="Timeout of the dataset validation subprocess.")

@@ -210,7 +210,7 @@ def _limit_memory(mb: int):
 
 
 def validate_dataset(root: Path, settings: Settings, max_side: Optional[int] = None) -> dict:
-    """Run the core's validator in a subprocess (the API never imports nepf_core).
+    """Run the core's validator in a subprocess (the API imports no nepf_core module but the constants of nepf_core.limits).
 
     It checks the decoded-pixel cap ``NEPF_MAX_TOTAL_PIXELS`` from the image headers and
     reports the working size at ``max_side`` (default: what a job that asks none trains at,

@@ -53,6 +53,20 @@ VARIANTS = {
 }
 
 
+def pinned_version(package: str, path: Path = REPO / "constraints.txt") -> str | None:
+    """The ``==`` version of ``package`` in the repo's constraints file (the one scripts/install.sh
+    installs), or None."""
+    try:
+        lines = path.read_text().splitlines()
+    except OSError:
+        return None
+    for line in lines:
+        name, sep, ver = line.split("#", 1)[0].strip().partition("==")
+        if sep and name.strip().lower() == package:
+            return ver.strip()
+    return None
+
+
 def machine_info(threads: int | None) -> dict:
     import platform
     info = {"hostname": platform.node(), "platform": platform.platform(), "python": platform.python_version(),
@@ -80,6 +94,11 @@ def machine_info(threads: int | None) -> dict:
         info["torch"] = version("torch")
     except Exception:
         info["torch"] = None
+    info["torch_pinned"] = pinned_version("torch")
+    if info["torch"] and info["torch_pinned"] and info["torch"].split("+")[0] != info["torch_pinned"]:
+        print(f"warning: torch {info['torch']} is installed, constraints.txt pins {info['torch_pinned']}: "
+              "these numbers are not comparable with bench/RESULTS.md (pip install -c constraints.txt torch)",
+              file=sys.stderr)
     try:
         cg = Path("/sys/fs/cgroup/cpu.max").read_text().split()
         info["cgroup_cpu_max"] = " ".join(cg)

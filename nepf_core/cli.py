@@ -26,7 +26,8 @@ def cmd_fit(a) -> int:
                           device=a.device, callbacks=cb, resume=a.resume, export=not a.no_export,
                           texture_size=a.texture_size, max_faces=a.faces, test_dir=a.eval_test,
                           gt_mesh=a.gt_mesh, gt_albedo=a.gt_albedo, max_side=a.max_side,
-                          holdout_every=a.holdout_every, log=bar.write)
+                          max_total_pixels=a.max_total_pixels, holdout_every=a.holdout_every, up_axis=a.up,
+                          log=bar.write)
     finally:
         bar.close()
     print(json.dumps({k: summary[k] for k in ("status", "step", "total", "wall_s", "manifest", "split")}, indent=2))
@@ -68,9 +69,11 @@ def _encode_channel(name: str, arr):
     return (img * 255 + 0.5).astype("uint8")
 
 
-def render_run(run, cameras, out, device="auto", stride: int = 1, max_side: int = 0) -> dict:
+def render_run(run, cameras, out, device="auto", stride: int = 1, max_side: int = 0,
+               max_total_pixels: int | None = None) -> dict:
     """Render every camera of the dataset ``cameras`` with the run's model, at the working
-    resolution ``max_side`` (0: full size); see ``nepf render``."""
+    resolution ``max_side`` (0: full size), refusing more than ``max_total_pixels`` decoded pixels
+    (None/0: no cap); see ``nepf render``."""
     import numpy as np
     from PIL import Image
 
@@ -80,7 +83,7 @@ def render_run(run, cameras, out, device="auto", stride: int = 1, max_side: int 
     from nepf_core.reframe import load_held_out
     model, cfg, state = load_model(run, device)
     W = np.asarray(state["extra"]["world_from_norm"])
-    scene = load_held_out(cameras, W, max_side=max_side)
+    scene = load_held_out(cameras, W, max_side=max_side, max_total_pixels=max_total_pixels)
     dev = next(model.parameters()).device
     sampler = PixelSampler(scene, dev)
     rot = W[:3, :3] / float(np.cbrt(abs(np.linalg.det(W[:3, :3]))))
@@ -99,15 +102,20 @@ def render_run(run, cameras, out, device="auto", stride: int = 1, max_side: int 
 
 
 def cmd_render(a) -> int:
-    info = render_run(a.run, a.cameras, a.out, a.device, a.stride, max_side=a.max_side)
-    print(f"rendered {info['views']} views into {info['out']}")
+    info = render_run(a.run, a.cameras, a.out, a.device, a.stride, max_side=a.max_side,
+                      max_total_pixels=a.max_total_pixels)
+    s = info["scene"]
+    print(f"rendered {info['views']} views at {s.width}x{s.height} px ({_side_rule(a.max_side)}) into {info['out']}")
     return 0
 
 
 def cmd_relight(a) -> int:
     from nepf_core.relight.run import relight_run
-    info = relight_run(a.run, a.lights, a.cameras, a.out, a.device, max_side=a.max_side, bsdf_kind=a.bsdf)
-    print(f"relit {info['views']} views under {info['lights']} lights ({info['bsdf_kind']} BSDF) into {info['out']}")
+    info = relight_run(a.run, a.lights, a.cameras, a.out, a.device, max_side=a.max_side, bsdf_kind=a.bsdf,
+                       max_total_pixels=a.max_total_pixels)
+    w, h = info["working_size"]
+    print(f"relit {info['views']} views at {w}x{h} px ({_side_rule(a.max_side)}) under {info['lights']} lights "
+          f"({info['bsdf_kind']} BSDF) into {info['out']}")
     return 0
 
 
@@ -119,12 +127,14 @@ def cmd_eval(a) -> int:
     from nepf_core.train import load_model
     from nepf_core.model import ModelFieldQuery
     out_dir = Path(a.out) if a.out else Path(a.run) / "eval"
-    info = render_run(a.run, a.test, out_dir / "renders", a.device, max_side=a.max_side)
+    info = render_run(a.run, a.test, out_dir / "renders", a.device, max_side=a.max_side,
+                      max_total_pixels=a.max_total_pixels)
     scene = info["scene"]
+    print(f"eval: {scene.n_views} views at {scene.width}x{scene.height} px ({_side_rule(a.max_side)})", file=sys.stderr)
     arr = np.load(out_dir / "renders" / "arrays.npz")
     pred, gt = srgb_np(arr["pbr"]), srgb_np(scene.images)
     rad = srgb_np(arr["radiance"])   # the radiance network's colour: what a plain NeuS reports
-    res = {"views": scene.n_views, "psnr_full": psnr(pred, gt),
+    res = {"views": scene.n_views, "working_size": [scene.width, scene.height], "psnr_full": psnr(pred, gt),
            "ssim_full": float(np.mean([ssim(pred[i], gt[i]) for i in range(len(gt))])),
            "radiance_psnr_full": psnr(rad, gt)}
     if scene.masks is not None:
@@ -155,15 +165,52 @@ def cmd_eval(a) -> int:
 def cmd_export(a) -> int:
     from nepf_core.jobs import export_run
     p = export_run(a.run, device=a.device, texture_size=a.texture_size, max_faces=a.faces,
-                   mesh_resolution=a.resolution, previews=not a.no_previews)
+                   mesh_resolution=a.resolution, previews=not a.no_previews, up_axis=a.up)
     print(f"wrote {p}")
     return 0
 
 
+def _up_axis_type(value: str) -> str:
+    from nepf_core.up_axis import parse_up_axis
+    try:
+        return parse_up_axis(value) or "auto"
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
+def _join_up_values(argv: list[str]) -> list[str]:
+    """``--up -z`` as ``--up=-z``: argparse reads a value starting with ``-`` as an option."""
+    out: list[str] = []
+    for arg in argv:
+        if out and out[-1] == "--up" and arg.lower() in ("-x", "-y", "-z"):
+            out[-1] = f"--up={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
+def _up_arg(p: argparse.ArgumentParser, default_help: str) -> None:
+    from nepf_core.up_axis import UP_CHOICES
+    p.add_argument("--up", default=None, type=_up_axis_type, metavar="AXIS",
+                   help="the input world's up axis, one of " + ", ".join(UP_CHOICES) + "; the GLB, lights.json and "
+                        "light_field.json are rotated so that it becomes glTF's +Y (" + default_help + ")")
+
+
 def _max_side_arg(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--max-side", type=int, default=0, metavar="PX",
-                   help="working resolution: images whose long side exceeds PX are area-resampled to it "
-                        "at load, intrinsics scaled to match (default 0: full resolution)")
+    """``--max-side`` and ``--max-total-pixels``, with the service's defaults (``nepf_core.limits``)."""
+    from nepf_core.limits import DEFAULT_IMAGE_SIDE, MAX_TOTAL_PIXELS
+    p.add_argument("--max-side", type=int, default=DEFAULT_IMAGE_SIDE, metavar="PX",
+                   help="working resolution: images whose long side exceeds PX are area-resampled to it at load, "
+                        f"intrinsics scaled to match (default {DEFAULT_IMAGE_SIDE}, the service's "
+                        "NEPF_DEFAULT_IMAGE_SIDE; 0: full resolution)")
+    p.add_argument("--max-total-pixels", type=int, default=MAX_TOTAL_PIXELS, metavar="N",
+                   help="refuse a dataset whose images hold more than N pixels in all, read from the headers "
+                        f"before decoding (default {MAX_TOTAL_PIXELS:,}, the service's NEPF_MAX_TOTAL_PIXELS: "
+                        "about 4.8 GB of float32 images at full size; 0: no cap)")
+
+
+def _side_rule(max_side: int) -> str:
+    return f"long side at most {max_side} px; --max-side 0: full size" if max_side else "full resolution"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -188,6 +235,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--texture-size", type=int, default=None, choices=[256, 512, 1024, 2048],
                    help="baked texture size (default: 1024; 256 for tiny)")
     p.add_argument("--faces", type=int, default=None, help="face budget of the exported mesh (default 100k; 5k for tiny)")
+    _up_arg(p, "default auto: the mean of the cameras' up vectors, snapped to the nearest axis")
     _max_side_arg(p)
     _device_arg(p)
     p.set_defaults(fn=cmd_fit)
@@ -238,6 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--faces", type=int, default=100_000)
     p.add_argument("--resolution", type=int, default=256, help="marching-cubes resolution")
     p.add_argument("--no-previews", action="store_true")
+    _up_arg(p, "default: an earlier --up of this run (frame.json), else auto from the cameras")
     _device_arg(p)
     p.set_defaults(fn=cmd_export)
 
@@ -284,11 +333,16 @@ def main(argv: list[str] | None = None) -> int:
         mod, fn = SERVICE_COMMANDS[argv[0]]
         return _delegate(mod, fn, argv[1:])
     ap = build_parser()
-    a = ap.parse_args(argv)
+    a = ap.parse_args(_join_up_values(argv))
     try:
         return int(a.fn(a) or 0)
     except DatasetError as e:
         print(f"nepf: invalid dataset: {e}", file=sys.stderr)
+        if getattr(e, "code", None) == "too_many_pixels":
+            cap = getattr(a, "max_total_pixels", None) or 0
+            print(f"nepf: the cap is --max-total-pixels {cap:,} (default: the service's NEPF_MAX_TOTAL_PIXELS); it "
+                  "counts the images' full-size pixels, whatever --max-side; give a larger value, or 0 for none, "
+                  "if this machine has the memory (12 bytes per pixel at full size)", file=sys.stderr)
         return 2
     except (ValueError, RuntimeError, FileNotFoundError) as e:
         print(f"nepf: error: {e}", file=sys.stderr)

@@ -18,7 +18,13 @@ Contract (stable; the worker codes against it):
   ``split["eval_stride"]``-th pixel so that an evaluation renders at most
   ``EVAL_PIXEL_BUDGET`` pixels; the summary's ``split`` (and ``report.json``'s) says which.
 * ``max_side`` (0/None: full size) is the working resolution of the training and held-out
-  views: larger images are area-resampled at load, intrinsics scaled to match.
+  views: larger images are area-resampled at load, intrinsics scaled to match; it is logged with
+  the memory the images take. ``max_total_pixels`` (None/0: none) refuses a dataset whose images
+  hold more decoded pixels (``too_many_pixels``, before any decoding). ``nepf fit`` passes the
+  service's defaults for both (``nepf_core.limits``); a library caller asks for them.
+* ``up_axis`` (None / ``"auto"``: detected from the cameras; ``"+x"`` ... ``"-z"``: the user's) is
+  the input world's up axis; the export rotates it to glTF's +Y (``nepf_core.up_axis``) and
+  records the choice in ``frame.json`` and the manifest.
 * When ``callbacks.should_stop()`` turns True, training stops at the next step, a final
   checkpoint and the export of the partial model are still written, and the status is
   ``"cancelled"``.
@@ -93,6 +99,17 @@ def held_out_targets(scene, holdout_every: int | None, has_test_set: bool, eval_
     return train, EvalTargets(test_scene=test, split=split, stride=stride), split
 
 
+def working_size_text(scene, max_side: int | None) -> str:
+    """One line for the progress output: the views' working size, the rule that set it and the
+    memory the images take (``n W H x 12`` bytes of float32 RGB), e.g.
+    ``"data: 49 views at 800x600 px (long side at most 800 px; --max-side 0: full size), 0.28 GB of images"``."""
+    from nepf_core.limits import BYTES_PER_PIXEL
+
+    rule = f"long side at most {max_side} px; --max-side 0: full size" if max_side else "full resolution"
+    gb = scene.n_views * scene.width * scene.height * BYTES_PER_PIXEL / 1e9
+    return f"data: {scene.n_views} views at {scene.width}x{scene.height} px ({rule}), {gb:.2f} GB of images"
+
+
 EXPORT_DEFAULTS = {
     # tiny: seconds, for tests and demos; fast/paper: the issue's defaults (100k faces, 1024^2)
     "tiny": {"texture_size": 256, "max_faces": 5_000, "mesh_resolution": 64},
@@ -106,24 +123,28 @@ def run_job(data_dir, run_dir, *, preset: str = "fast", iters=None, time_budget_
             export: bool = True, texture_size: int | None = None, max_faces: int | None = None,
             mesh_resolution: int | None = None, test_dir=None, gt_mesh=None, gt_albedo=None,
             overrides: dict | None = None, max_side: int | None = None, holdout_every: int | None = None,
-            log=print) -> dict:
+            up_axis: str | None = None, max_total_pixels: int | None = None, log=print) -> dict:
     """Load ``data_dir``, fit, and export into ``run_dir``; see the module docstring."""
     from nepf_core.data.detect import load_scene
     from nepf_core.data.split import EVAL_PIXEL_BUDGET
     from nepf_core.train import EvalTargets, fit
+    from nepf_core.up_axis import parse_up_axis
 
+    parse_up_axis(up_axis)   # a bad value fails before the training, not after it
     cb = callbacks or FitCallbacks()
     run = Path(run_dir)
     run.mkdir(parents=True, exist_ok=True)
     cb.progress({"step": 0, "total": 0, "fraction": 0.0, "stage": "loading", "eta_s": None, "wall_s": 0.0})
-    scene = load_scene(data_dir, split="train", max_side=max_side)
+    scene = load_scene(data_dir, split="train", max_side=max_side, max_total_pixels=max_total_pixels)
+    log(working_size_text(scene, max_side))
     cfg = build_config(preset, iters, overrides)
     scene, targets, split = held_out_targets(scene, holdout_every, has_test_set=test_dir is not None,
                                              eval_pixels=EVAL_PIXEL_BUDGET)
     if test_dir is not None:
         import numpy as np
         from nepf_core.reframe import load_held_out
-        test_scene = load_held_out(test_dir, scene.world_from_norm, max_side=max_side)
+        test_scene = load_held_out(test_dir, scene.world_from_norm, max_side=max_side,
+                                   max_total_pixels=max_total_pixels)
         alb = None
         if gt_albedo is not None:
             alb = np.load(gt_albedo)["albedo"].astype("float32") if str(gt_albedo).endswith(".npz") else gt_albedo
@@ -139,7 +160,7 @@ def run_job(data_dir, run_dir, *, preset: str = "fast", iters=None, time_budget_
         cb.progress({"step": res.step, "total": res.total, "fraction": 1.0 if res.status != "cancelled" else res.step / max(res.total, 1),
                      "stage": "exporting", "eta_s": None, "wall_s": res.wall_s})
         manifest_path = export_run(run, device=device, texture_size=texture_size, max_faces=max_faces,
-                                   mesh_resolution=mesh_resolution, log=log)
+                                   mesh_resolution=mesh_resolution, up_axis=up_axis, log=log)
     summary = {"status": res.status, "step": res.step, "total": res.total, "wall_s": res.wall_s,
                "manifest": None if manifest_path is None else Path(manifest_path).relative_to(run).as_posix(),
                "working_size": [scene.width, scene.height], "split": split, "report": res.report,
@@ -151,9 +172,30 @@ def run_job(data_dir, run_dir, *, preset: str = "fast", iters=None, time_budget_
     return summary
 
 
+def export_frame(run_dir, extra: dict, up_axis: str | None = None):
+    """The :class:`~nepf_core.up_axis.UpFrame` of a run's export: ``up_axis`` when it names an
+    axis; with None, an earlier export's override (``RUN/frame.json``, ``up_source`` "override":
+    ``nepf fit --up`` stays when ``nepf export`` runs again); else (``"auto"`` too) the axis
+    nearest the cameras' mean up recorded in the checkpoint (``extra["camera_up"]``), else +z
+    (a checkpoint written before the up axis was recorded)."""
+    from nepf_core.up_axis import parse_up_axis, resolve_up_frame
+
+    axis = parse_up_axis(up_axis)
+    previous = Path(run_dir) / "frame.json"
+    if up_axis is None and previous.is_file():
+        try:
+            rec = json.loads(previous.read_text())
+        except (OSError, json.JSONDecodeError):
+            rec = {}
+        if rec.get("up_source") == "override":
+            axis = parse_up_axis(rec.get("world_up"))
+    return resolve_up_frame(axis, extra.get("camera_up"))
+
+
 def export_run(run_dir, *, device: str = "auto", texture_size: int = 1024, max_faces: int = 100_000,
-               mesh_resolution: int = 256, previews: bool = True, log=print) -> Path:
-    """Export the latest checkpoint of ``run_dir`` (GLB, textures, light field, previews, manifest)."""
+               mesh_resolution: int = 256, previews: bool = True, up_axis: str | None = None, log=print) -> Path:
+    """Export the latest checkpoint of ``run_dir`` (GLB, textures, light field, previews, manifest);
+    ``up_axis``: see :func:`export_frame`."""
     from nepf_core.export import export_asset
     from nepf_core.model import ModelFieldQuery
     from nepf_core.train import load_model
@@ -165,7 +207,9 @@ def export_run(run_dir, *, device: str = "auto", texture_size: int = 1024, max_f
     import numpy as np
     dev = next(model.parameters()).device
     # the material as the surface was shaded at the end of the run (a dropped lobe: metallic 0)
+    frame = export_frame(run_dir, state["extra"], up_axis)
+    log(f"export: world up {frame.world_up} ({frame.source}) -> glTF +Y")
     export_asset(ModelFieldQuery(model, shading=state["run_state"].shading()), np.asarray(world_from_norm), run_dir,
                  texture_size=texture_size, max_faces=max_faces, mesh_resolution=mesh_resolution, device=dev, log=log,
-                 previews=previews, relit_bsdf=cfg.render.bsdf_kind)
+                 previews=previews, relit_bsdf=cfg.render.bsdf_kind, frame=frame)
     return Path(run_dir) / "manifest.json"

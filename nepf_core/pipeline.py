@@ -52,6 +52,8 @@ class JobRequest:
             load, intrinsics scaled to match (None/0: full size).
         holdout_every: views ``0, K, 2K, ...`` are held out of training and evaluated during
             it (0: none; None: the default rule of ``nepf_core.data.split``).
+        up_axis: the input world's up axis, ``"+x"`` ... ``"-z"``, rotated to glTF's +Y at export
+            (None / ``"auto"``: detected from the cameras; ``nepf_core.up_axis``).
     """
 
     data_dir: Path
@@ -68,6 +70,7 @@ class JobRequest:
     max_faces: Optional[int] = None
     max_side: Optional[int] = None
     holdout_every: Optional[int] = None
+    up_axis: Optional[str] = None
 
 
 Pipeline = Callable[[JobRequest], dict]
@@ -88,7 +91,7 @@ def run_pipeline(request: JobRequest) -> dict:
                    callbacks=request.callbacks, resume=request.resume,
                    texture_size=request.texture_size, mesh_resolution=request.mesh_resolution,
                    max_faces=request.max_faces, overrides=overrides, max_side=request.max_side,
-                   holdout_every=request.holdout_every)
+                   holdout_every=request.holdout_every, up_axis=request.up_axis)
 
 
 def load_pipeline(spec: str, setting: str = "NEPF_PIPELINE") -> Pipeline:

@@ -39,15 +39,16 @@ def object_world_from_norm(world_from_norm: np.ndarray, centre, radius: float) -
 
 
 def load_held_out(root, target_world_from_norm: np.ndarray, *, downscale: int = 1,
-                  max_side: int | None = None) -> Scene:
+                  max_side: int | None = None, max_total_pixels: int | None = None) -> Scene:
     """Load a held-out dataset folder (its ``test`` split for Blender layouts, every view
-    otherwise) at the working resolution ``max_side`` (0/None: full size) and express it in
-    the target run's normalised frame."""
+    otherwise) at the working resolution ``max_side`` (0/None: full size), refusing more than
+    ``max_total_pixels`` decoded pixels (None/0: no cap), and express it in the target run's
+    normalised frame."""
     from pathlib import Path
 
     from nepf_core.data.detect import load_scene, resolve_dataset
     fmt, folder = resolve_dataset(root)
     split = "test" if fmt == "blender" and (Path(folder) / "transforms_test.json").exists() else (
         "train" if fmt == "blender" else "all")
-    return reframe_scene(load_scene(folder, split=split, downscale=downscale, max_side=max_side),
-                         target_world_from_norm)
+    return reframe_scene(load_scene(folder, split=split, downscale=downscale, max_side=max_side,
+                                    max_total_pixels=max_total_pixels), target_world_from_norm)

@@ -3,7 +3,8 @@
 #   Debian packages (headless EGL/OSMesa for previews, Chromium for browser tests, Redis,
 #   PostgreSQL client/server when missing), a virtual environment .venv with the library, the
 #   service and the test tools (`pip install -e ".[service,test]"`), torch at the version pinned
-#   in pyproject.toml, and the npm packages (web viewer build, Khronos glTF validator).
+#   in constraints.txt (pyproject.toml only bounds it), and the npm packages (web viewer build,
+#   Khronos glTF validator).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)
@@ -26,10 +27,12 @@ if [ ! -x .venv/bin/python ]; then
   "$PY" -m venv .venv
 fi
 .venv/bin/python -m pip install -q --upgrade pip setuptools wheel
-# torch first, at the one pin in pyproject.toml (the Dockerfile reads the same line)
-TORCH_SPEC=$(.venv/bin/python -c 'import tomllib; deps = tomllib.load(open("pyproject.toml", "rb"))["project"]["dependencies"]; print(next(d for d in deps if d.startswith("torch")))')
-.venv/bin/python -m pip install -q "$TORCH_SPEC"
-.venv/bin/python -m pip install -q -e ".[service,test]"
+# torch first, at the pin of constraints.txt (the Dockerfile and the benchmarks use the same file).
+# Both installs take -c constraints.txt: pyproject.toml asks only torch>=2.4,<3, and without the
+# constraint the resolver could pick another torch (on Linux, PyPI's default wheel pulls GBs of
+# CUDA packages) or replace the pinned one.
+.venv/bin/python -m pip install -q -c constraints.txt torch
+.venv/bin/python -m pip install -q -c constraints.txt -e ".[service,test]"
 
 echo "== npm packages"
 while read -r dir; do

@@ -1,4 +1,4 @@
-"""Job options (issue 26): ``holdout_every``, ``texture_size``, ``max_faces`` in the job config:
+"""Job options (issues 26, 34): ``holdout_every``, ``texture_size``, ``max_faces``, ``up_axis`` in the job config:
 their 422s, their defaults, and the job's value overriding the service default all the way
 to the pipeline's JobRequest."""
 
@@ -19,6 +19,9 @@ from test_api_dataset_limits import dtu_zip, post, service  # noqa: F401 - the f
     ({"max_faces": 999}, "max_faces must be an integer in [1000, 2000000] (got 999)"),
     ({"max_faces": 2_000_001}, "max_faces must be an integer in [1000, 2000000]"),
     ({"max_faces": 5000.0}, "max_faces must be an integer"),
+    ({"up_axis": "up"}, 'up_axis must be one of auto, +x, -x, +y, -y, +z, -z'),
+    ({"up_axis": 2}, "up_axis must be one of"),
+    ({"up_axis": "+w"}, '(got "+w")'),
 ])
 def test_bad_options_are_422_naming_the_key(service, tmp_path, config, words):  # noqa: F811
     clients, svc, data = service()
@@ -61,12 +64,24 @@ def test_job_options_override_the_service_defaults_in_the_job_request(service, t
     seen = {}
 
     def pipeline(request):
-        seen[request.data_dir.parent.name] = (request.texture_size, request.max_faces, request.holdout_every)
+        seen[request.data_dir.parent.name] = (request.texture_size, request.max_faces, request.holdout_every,
+                                              request.up_axis)
         return {"status": "succeeded", "step": 1, "total": 1}
 
     asked = post(clients["alice"], dtu_zip(tmp_path / "a", n=16),
-                 config={"texture_size": 2048, "max_faces": 1000, "holdout_every": 4}).json()["id"]
+                 config={"texture_size": 2048, "max_faces": 1000, "holdout_every": 4, "up_axis": "-Y"}).json()
+    assert asked["config"]["up_axis"] == "-y"
+    auto = post(clients["alice"], dtu_zip(tmp_path / "c", n=16), config={"up_axis": "auto"}).json()
+    assert auto["config"]["up_axis"] is None   # detected from the cameras at export
     default = post(clients["alice"], dtu_zip(tmp_path / "b", n=16)).json()["id"]
-    for jid in (asked, default):
+    for jid in (asked["id"], auto["id"], default):
         assert JobRunner(svc.settings, svc.Session, jid, "w1", pipeline=pipeline).run() == "succeeded"
-    assert seen == {asked: (2048, 1000, 4), default: (512, 50_000, 8)}
+    assert seen == {asked["id"]: (2048, 1000, 4, "-y"), auto["id"]: (512, 50_000, 8, None),
+                    default: (512, 50_000, 8, None)}
+
+
+def test_up_axis_choices_are_the_cores():
+    """The API validates ``up_axis`` without importing the core: the same choices."""
+    from api.job_config import UP_AXIS_CHOICES
+    from nepf_core.up_axis import UP_CHOICES
+    assert UP_AXIS_CHOICES == UP_CHOICES

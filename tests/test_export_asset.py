@@ -1,7 +1,9 @@
 """End-to-end export of an analytic sphere (tests/export_fixtures.py) into a run folder.
 
 One export (module fixture) with a non-identity world_from_norm (scale 2.5, rotation 30
-degrees, translation (3, -1, 0.5)); every test reads its artifacts.
+degrees, translation (3, -1, 0.5)) and a +Z-up world (the GLB, lights.json and light_field.json
+are rotated into glTF's +Y-up frame, ``R = gltf_from_world("+z")``); every test reads its
+artifacts. tests/test_gltf_frame.py checks the frame itself with another up axis.
 """
 
 from __future__ import annotations
@@ -26,12 +28,14 @@ from nepf_core.export import export_asset, write_manifest
 from nepf_core.export.manifest import ARTIFACT_KINDS
 from nepf_core.export.previews import BACKGROUND
 from nepf_core.export.uv_bake import srgb_to_linear
+from nepf_core.up_axis import UpFrame, gltf_from_world
 
 REPO = Path(__file__).resolve().parents[1]
 VALIDATOR_DIR = REPO / "tools" / "gltf-validator"
 SCALE = 2.5
 TEX = 256
 RES = 96  # marching-cubes grid; voxel h = 2/95 ~ 0.021 (normalised)
+R_GLB = gltf_from_world("+z")  # x_glb = R x_world: (x, y, z) -> (x, z, -y)
 
 
 @pytest.fixture(scope="module")
@@ -41,7 +45,8 @@ def run(tmp_path_factory):
     out = tmp_path_factory.mktemp("run")
     logs: list[str] = []
     entries = export_asset(q, m, out, texture_size=TEX, max_faces=6000, mesh_resolution=RES,
-                           light_samples=3000, preview_frames=4, preview_size=128, log=logs.append)
+                           light_samples=3000, preview_frames=4, preview_size=128, log=logs.append,
+                           frame=UpFrame("+z", "cameras"))
     return {"q": q, "m": m, "dir": out, "entries": entries, "logs": logs}
 
 
@@ -96,7 +101,8 @@ def test_glb_round_trip_geometry_uv_and_textures(run):
     assert len(pos) == len(nrm) == len(uv) > 100
     assert idx.max() < len(pos) and len(idx) % 3 == 0 and len(idx) // 3 <= 6000
     assert np.all((uv >= 0) & (uv <= 1))
-    assert gltf.asset.extras["nepf"]["up"] == [0.0, 0.0, 1.0]  # the viewer's up-axis hint
+    assert gltf.asset.extras["nepf"]["up"] == [0.0, 1.0, 0.0]  # glTF's up; the world's was +z
+    assert gltf.asset.extras["nepf"]["world_up"] == "+z"
     np.testing.assert_allclose(np.linalg.norm(nrm, axis=-1), 1.0, atol=1e-5)
 
     # trimesh reads the same vertex count
@@ -119,7 +125,7 @@ def test_glb_round_trip_geometry_uv_and_textures(run):
     # baseColor is sRGB-encoded: decode and compare with the known linear albedo at the vertex
     albedo = srgb_to_linear(base[row, col] / 255.0)
     q = run["q"]
-    expected = albedo_numpy(_world_to_norm(run["m"], pos), q.center.numpy(), q.radius)
+    expected = albedo_numpy(_world_to_norm(run["m"], pos @ R_GLB), q.center.numpy(), q.radius)   # R^T x_glb
     err = np.abs(albedo - expected)
     # one texel spans ~ 1/(TEX * sqrt(util)) of the chart; albedo slope is 0.4/r per unit
     assert err.mean() < 0.01, err.mean()
@@ -140,23 +146,28 @@ def test_mesh_in_world_coordinates(run):
     radial = (mesh.vertices - centre_w) / d[:, None]
     assert np.min((n * radial).sum(-1)) > 0.99
     assert mesh.volume > 0  # outward winding
-    # the GLB holds the same world geometry
+    # the GLB holds the same geometry, rotated into glTF's +Y-up frame (world units and origin)
     gltf = pygltflib.GLTF2().load_binary(str(run["dir"] / "asset.glb"))
     pos = _accessor(gltf, gltf.binary_blob(), gltf.meshes[0].primitives[0].attributes.POSITION)
-    dg = np.linalg.norm(pos - centre_w, axis=-1)
+    dg = np.linalg.norm(pos - R_GLB @ centre_w, axis=-1)
     assert abs(dg.mean() - radius_w) < 0.05 * h_w + 1e-3 * radius_w
 
 
 def test_light_field_and_fitted_point_light(run):
     q, m = run["q"], run["m"]
     lf = json.loads((run["dir"] / "light_field.json").read_text())
-    lights = json.loads((run["dir"] / "lights.json").read_text())
+    glb_lights = json.loads((run["dir"] / "lights.json").read_text())
+    assert glb_lights["frame"] == "glb"
+    lights = glb_lights["world"]   # the world-frame summary; the top level is the same rotated
+    assert lights["frame"] == "world"
+    np.testing.assert_allclose(glb_lights["point_light"]["position"], R_GLB @ np.array(lights["point_light"]["position"]),
+                               atol=1e-12)
     assert (run["dir"] / "light_field.json").stat().st_size < 2 * 2**20
-    pts = np.array(lf["points"])
-    dirs = np.array(lf["directions"])
-    nrm = np.array(lf["normals"])
+    pts = np.array(lf["points"]) @ R_GLB   # R^T x_glb: back to the world
+    dirs = np.array(lf["directions"]) @ R_GLB
+    nrm = np.array(lf["normals"]) @ R_GLB
     inten = np.array(lf["intensity"])
-    assert lf["frame"] == "world" and lf["count"] == len(pts) == len(dirs) == len(nrm) == len(inten)
+    assert lf["frame"] == "glb" and lf["count"] == len(pts) == len(dirs) == len(nrm) == len(inten)
     assert len(pts) >= 2000
     for a in (pts, dirs, nrm, inten):
         assert np.all(np.isfinite(a))

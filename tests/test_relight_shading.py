@@ -166,7 +166,8 @@ def test_malformed_lights_name_the_file_and_the_light(tmp_path):
 
 def test_canonical_lights_geometry():
     c, R = np.array([0.15, -0.1, 0.05]), 1.2
-    for up, ax in (((0, 0, 1), (1, 0, 0)), ((0, 1, 0), (0, 0, 1)), ((0, -1, 0), (0, 0, 1))):
+    # azimuth 0 is the viewer's: +Z in the GLB's +Y-up frame, i.e. R^T e_z in the world (-y for a +Z-up world)
+    for up, ax in (((0, 0, 1), (0, -1, 0)), ((0, 1, 0), (0, 0, 1)), ((0, -1, 0), (0, 0, 1))):
         L = canonical_lights(c, R, up)
         rel = L.positions - c
         np.testing.assert_allclose(np.linalg.norm(rel, axis=-1), 3 * R, rtol=1e-12)

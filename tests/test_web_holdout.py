@@ -32,18 +32,18 @@ def test_upload_form_checks_the_job_options():
     node = shutil.which("node")
     assert node, "node is required to build and test the web viewer"
     cases = [
-        {"holdoutEvery": "8", "maxImageSide": "400", "textureSize": "2048", "maxFaces": "1000"},
+        {"holdoutEvery": "8", "maxImageSide": "400", "textureSize": "2048", "maxFaces": "1000", "upAxis": "-Y"},
         {},
-        {"holdoutEvery": "0", "maxFaces": " 2000000 "},
-        {"holdoutEvery": "1", "maxImageSide": "4", "textureSize": "300", "maxFaces": "999"},
+        {"holdoutEvery": "0", "maxFaces": " 2000000 ", "upAxis": "auto"},
+        {"holdoutEvery": "1", "maxImageSide": "4", "textureSize": "300", "maxFaces": "999", "upAxis": "up"},
         {"holdoutEvery": "2.5", "maxFaces": "2000001"},
     ]
     r = subprocess.run([node, "--input-type=module", "-e", NODE_SCRIPT], input=json.dumps(cases),
                        cwd=WEB / "src", capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
-    assert out[0] == {"options": {"holdout_every": 8, "max_image_side": 400, "texture_size": 2048, "max_faces": 1000},
-                      "problems": []}
+    assert out[0] == {"options": {"holdout_every": 8, "max_image_side": 400, "texture_size": 2048, "max_faces": 1000,
+                                  "up_axis": "-y"}, "problems": []}
     assert out[1] == {"options": {}, "problems": []}
     assert out[2] == {"options": {"holdout_every": 0, "max_faces": 2_000_000}, "problems": []}
     assert out[3]["options"] == {}
@@ -51,7 +51,8 @@ def test_upload_form_checks_the_job_options():
         ("Held-out views", "must be 0 (train on all views) or an integer ≥ 2 (got 1)"),
         ("Working resolution", "must be an integer ≥ 8 pixels (got 4)"),
         ("Texture size", "must be one of 256, 512, 1024, 2048 (got 300)"),
-        ("Mesh faces", "must be an integer from 1000 to 2000000 (got 999)")]
+        ("Mesh faces", "must be an integer from 1000 to 2000000 (got 999)"),
+        ("Up axis", "must be one of auto, +x, -x, +y, -y, +z, -z (got up)")]
     assert [p["file"] for p in out[4]["problems"]] == ["Held-out views", "Mesh faces"]
 
 

@@ -22,7 +22,7 @@ SCRIPT = r"""
 import { parseLightField, parseLights, colormap } from './viewer3d.js';
 import { normJob, applyEvent } from './live.js';
 import { validationErrors, errorSummary } from './api.js';
-import { metricsToCsv } from './util.js';
+import { metricsToCsv, filenameFromDisposition } from './util.js';
 const input = JSON.parse(await new Promise((res) => { let s = ''; process.stdin.on('data', (d) => s += d); process.stdin.on('end', () => res(s)); }));
 const lf = parseLightField(input.light_field);
 const lfRecords = parseLightField({ samples: input.light_field.points.map((p, i) => ({ position: p, direction: input.light_field.directions[i], intensity: input.light_field.intensity[i] })) });
@@ -40,6 +40,7 @@ const out = {
   errors: validationErrors(input.error_body), summary: errorSummary(input.error_body, 422),
   csv: metricsToCsv(input.records),
   cmap: [colormap(0), colormap(1)],
+  names: input.dispositions.map(filenameFromDisposition),
 };
 process.stdout.write(JSON.stringify(out));
 """
@@ -89,8 +90,15 @@ def test_viewer_parses_what_export_and_api_write(tmp_path):
     records = [{"step": 5, "wall_s": 1.0, "kind": "train", "loss": 0.5, "loss_r": 0.25},
                {"step": 50, "wall_s": 9.0, "kind": "sync", "psnr_r": 20.0, "note": "a, \"quoted\""}]
 
+    from api.downloads import content_disposition
+    dispositions = [content_disposition("Kürbis \"groß\" 50%; x", "a" * 32, "textures/orm.png"),
+                    content_disposition(None, "b" * 32, "asset.glb"), 'attachment; filename="plain.txt"',
+                    "attachment; filename=bare.bin", None]
     out = run_node({"light_field": lf, "lights_point": lights_point, "lights_directional": lights_dir,
-                    "job": job, "error_body": err, "records": records})
+                    "job": job, "error_body": err, "records": records, "dispositions": dispositions})
+    # the viewer saves a download under the API's name (util.js filenameFromDisposition)
+    assert out["names"] == ['Kürbis _groß_ 50%; x-textures-orm.png', "nepf-bbbbbbbb-asset.glb", "plain.txt",
+                            "bare.bin", None]
 
     assert out["lf"]["n"] == n and out["lfRecords"] == n
     np.testing.assert_allclose(out["lf"]["p0"], pts[0], atol=1e-5)
@@ -143,3 +151,32 @@ def test_job_normalisation_reads_only_fields_the_api_sends():
     event_keys = re.findall(r"'(\w+)'", re.search(r"for \(const k of \[([^\]]*)\]\)",
                                                    _function_source(live, "applyEvent")).group(1))
     assert event_keys and set(event_keys) <= set(JobPublic.model_fields), event_keys
+
+
+FRAME_SCRIPT = r"""
+import * as THREE from 'three';
+import { frameRotation, upFromFrame } from './viewer3d.js';
+const input = JSON.parse(await new Promise((res) => { let s = ''; process.stdin.on('data', (d) => s += d); process.stdin.on('end', () => res(s)); }));
+const r = frameRotation(input.frame);
+const p = new THREE.Vector3(...input.point).applyMatrix3(r);
+process.stdout.write(JSON.stringify({ up: upFromFrame(input.frame), point: p.toArray(),
+  none: frameRotation({}) === null && frameRotation({ gltf_from_world: [[1, 0], [0, 1]] }) === null,
+  legacyUp: upFromFrame({}) }));
+"""
+
+
+def test_viewer_reads_the_manifest_frame_as_the_export_writes_it():
+    """The manifest's ``frame`` (``UpFrame.to_json``) in the viewer: up +Y, and a world point
+    through ``gltf_from_world`` as numpy maps it (three.js' Matrix3.set takes rows)."""
+    from nepf_core.up_axis import UpFrame
+
+    frame = UpFrame("+z", "cameras", (0.0, 0.1, 0.9)).to_json()
+    node = shutil.which("node")
+    assert node, "node is required to build and test the web viewer"
+    point = [1.0, 2.0, 3.0]
+    r = subprocess.run([node, "--input-type=module", "-e", FRAME_SCRIPT], input=json.dumps({"frame": frame, "point": point}),
+                       cwd=SRC, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["up"] == "y" and out["none"] is True and out["legacyUp"] is None
+    np.testing.assert_allclose(out["point"], np.asarray(frame["gltf_from_world"]) @ point)   # (1, 3, -2)

@@ -399,7 +399,8 @@ def test_job_page_charts_3d_channels_light_lightfield_download(browser, backend,
     with page.expect_download() as dl:
         page.locator('[data-download="asset.glb"]').click()
     got = Path(dl.value.path()).read_bytes()
-    assert dl.value.suggested_filename == "asset.glb"
+    # saved under the API's Content-Disposition name: "<job name>-<artifact>"
+    assert dl.value.suggested_filename == "sphere (web test)-asset.glb"
     assert got == api_glb and got[:4] == b"glTF"
     for p in ("textures/base_color.png", "textures/orm.png", "light_field.json", "metrics.jsonl"):
         assert page.locator(f'[data-download="{p}"]').count() == 1, p
@@ -415,13 +416,17 @@ def test_job_page_charts_3d_channels_light_lightfield_download(browser, backend,
 def test_relit_previews_beside_the_viewer_set_its_light_and_camera(browser, backend, finished_job, shots):
     """The export's three canonical relit previews show beside the 3D view (images decoded,
     azimuth labels from the record), and "Use this light" puts the viewer's light at the preview
-    light's world position (the viewer's frame: the GLB has no root transform), with its
-    intensity, and the camera at the preview camera."""
+    light's world position mapped into the GLB's +Y-up frame (the manifest's ``frame``), with its
+    intensity, and the camera at the preview camera. The Z-up sphere comes in upright: the up axis
+    follows from the manifest, +Y, without touching the selector."""
     job_id = finished_job["id"]
     with backend.client() as c:
         rec = c.get(f"/jobs/{job_id}/artifacts/previews/relit_canonical.json").json()
         manifest = c.get(f"/jobs/{job_id}/artifacts/manifest.json").json()
     assert manifest["relit_previews"] == rec
+    frame = manifest["frame"]
+    assert (frame["world_up"], frame["up_source"], frame["glb_up"]) == ("+z", "cameras", "+y")
+    rot = np.asarray(frame["gltf_from_world"], float)
     assert len(rec["images"]) == len(rec["lights"]) == 3
     page, con = new_page(browser, backend)
     open_job(page, backend, job_id)
@@ -447,14 +452,18 @@ def test_relit_previews_beside_the_viewer_set_its_light_and_camera(browser, back
         wait_frame_after(page, f0)
         assert strip.get_attribute("data-applied") == str(k)
         d = page.locator("#viewer-canvas").evaluate("el => ({...el.dataset})")
+        assert d["up"] == "y" and page.locator("#up-axis").input_value() == "y"
         light = rec["lights"][k]
-        np.testing.assert_allclose([float(v) for v in d["lightPosition"].split()], light["position_world"],
+        np.testing.assert_allclose([float(v) for v in d["lightPositionWorld"].split()], light["position_world"],
+                                   rtol=0, atol=1e-5 * scale)
+        np.testing.assert_allclose([float(v) for v in d["lightPosition"].split()], rot @ light["position_world"],
                                    rtol=0, atol=1e-5 * scale)
         assert float(d["lightIntensity"]) == pytest.approx(float(np.mean(light["intensity_rgb"])), rel=1e-6)
-        np.testing.assert_allclose([float(v) for v in d["cameraPosition"].split()], rec["camera"]["position_world"],
-                                   rtol=0, atol=1e-5 * scale)
+        np.testing.assert_allclose([float(v) for v in d["cameraPositionWorld"].split()],
+                                   rec["camera"]["position_world"], rtol=0, atol=1e-5 * scale)
         assert d["env"] == "none" and page.locator("#env-preset").input_value() == "none"
-    # the sliders show the applied light: azimuth 240 deg about +Z is -120 deg on the (-180, 180] slider
+    # the sliders show the applied light: azimuth 240 deg (the record's, about the world's +Z, which is the
+    # viewer's +Y) is -120 deg on the (-180, 180] slider
     assert float(page.locator("#light-lightAz").input_value()) == pytest.approx(-120, abs=1)
     assert float(page.locator("#light-lightEl").input_value()) == pytest.approx(rec["canonical"]["elevation_deg"], abs=1)
     img = png_stats(canvas_png(page))

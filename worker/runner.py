@@ -221,7 +221,7 @@ class JobRunner:
 
     def job_request(self, cfg: dict):
         """The pipeline's :class:`~nepf_core.pipeline.JobRequest`: the job's config (preset,
-        iters, time budget, working side, held-out split, export sizes) and the worker's settings
+        iters, time budget, working side, held-out split, export sizes, up axis) and the worker's settings
         (device, checkpoint period, the export sizes a job does not set)."""
         from nepf_core.callbacks import FitCallbacks  # torch-free modules
         from nepf_core.pipeline import JobRequest
@@ -236,7 +236,7 @@ class JobRunner:
                           mesh_resolution=s.export_mesh_resolution,
                           max_faces=cfg.get("max_faces") or s.export_max_faces,
                           max_side=s.job_max_side(cfg.get("max_image_side")),
-                          holdout_every=cfg.get("holdout_every"))
+                          holdout_every=cfg.get("holdout_every"), up_axis=cfg.get("up_axis"))
 
     def run(self) -> str:
         outcome = self.claim()

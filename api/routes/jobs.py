@@ -25,6 +25,7 @@ from jobstore.queue import enqueue
 
 from ..auth import check_ticket, make_ticket
 from ..deps import CredsDep, OwnerDep, ServiceDep, owner_from_header
+from ..downloads import content_disposition
 from ..errors import ApiError, not_found
 from ..metrics_index import METRICS
 from ..schemas import (Artifact, ArtifactList, ErrorBody, JobList, JobPublic, MetricsPage, Ticket)
@@ -109,7 +110,8 @@ MULTIPART_DOC = {
                            'JSON object: {"preset": "fast|paper|tiny", "iters": int, '
                            '"time_budget_s": number, "name": str, "max_image_side": int (<= NEPF_MAX_IMAGE_SIDE), '
                            '"holdout_every": 0 or 2..n_views/2 (default 8 for 16+ views, else 0), '
-                           '"texture_size": 256|512|1024|2048, "max_faces": 1000..2000000}; see JobConfig'},
+                           '"texture_size": 256|512|1024|2048, "max_faces": 1000..2000000, '
+                           '"up_axis": "auto|+x|-x|+y|-y|+z|-z"}; see JobConfig'},
             }}}},
     }
 }
@@ -348,7 +350,9 @@ def list_artifacts(job_id: str, svc: ServiceDep, owner: OwnerDep):
         p = a["path"]
         items.append(Artifact(kind=a.get("kind"), path=p, bytes=a.get("bytes"), sha256=a.get("sha256"),
                               content_type=content_type_for(p), url=f"/jobs/{job.id}/artifacts/{p}"))
-    return ArtifactList(artifacts=items, manifest=man is not None, status=job.status)
+    frame = (man or {}).get("frame")
+    return ArtifactList(artifacts=items, manifest=man is not None, status=job.status,
+                        frame=frame if isinstance(frame, dict) else None)
 
 
 def safe_artifact_path(base: Path, rel: str) -> Optional[Path]:
@@ -370,14 +374,18 @@ def safe_artifact_path(base: Path, rel: str) -> Optional[Path]:
 
 @router.get("/jobs/{job_id}/artifacts/{path:path}", responses={**ERRORS, 200: {
     "content": {t: {} for t in ARTIFACT_MEDIA_TYPES}, "description": "The file, with its content type"}},
-    response_class=FileResponse, summary="Download one artifact (asset.glb, textures, previews, metrics...)")
+    response_class=FileResponse, summary="Download one artifact (asset.glb, textures, previews, metrics...) as "
+                                         "an attachment named <job name>-<artifact>; Range and ETag supported")
 def get_artifact(job_id: str, path: str, svc: ServiceDep, owner: OwnerDep):
     job = _load(svc, owner, job_id)
     target = safe_artifact_path(run_dir(svc, job.id), path)
     if target is None:
         raise not_found("artifact")
-    return FileResponse(target, media_type=content_type_for(target.name),
-                        filename=None, headers={"Cache-Control": "private, max-age=0"})
+    # FileResponse answers Range (206, If-Range) and sends ETag / Last-Modified; the name a browser
+    # or a script saves the file under: "<job name>-<artifact>" (api/downloads.py)
+    return FileResponse(target, media_type=content_type_for(target.name), filename=None,
+                        headers={"Cache-Control": "private, max-age=0",
+                                 "Content-Disposition": content_disposition(job.name, job.id, path)})
 
 
 # ------------------------------------------------------------------------------- control

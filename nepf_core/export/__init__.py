@@ -9,8 +9,9 @@ Pipeline (normalised frame until the last step): chunked narrow-band SDF grid ->
 cubes at 0
 -> drop floaters -> quadric decimation to ``max_faces`` -> field normals at vertices ->
 xatlas unwrap -> texel rasterisation -> material queries -> push-pull padding -> PNGs ->
-world transform (``world_from_norm``) -> GLB + PLY; light field and fitted lights;
-previews in a VTK subprocess.
+world transform (``world_from_norm``) -> PLY (world) and GLB (rotated to glTF's +Y up,
+``nepf_core.up_axis``); light field and fitted lights (written in the GLB's frame); previews
+in a VTK subprocess (world frame, orbiting the world's up).
 
 Measured on the development machine (2 CPU cores, no GPU, torch CPU) while other jobs
 kept its load average at 8-12, so wall times are inflated; process CPU time
@@ -43,6 +44,7 @@ and the ~0.6·S² texel material queries add the network's cost.
 from __future__ import annotations
 
 import io
+import json
 import time
 from pathlib import Path
 from typing import Callable, Protocol
@@ -50,6 +52,8 @@ from typing import Callable, Protocol
 import numpy as np
 import torch
 from PIL import Image
+
+from nepf_core.up_axis import UpFrame
 
 from .glb import write_glb
 from .light_field import fit_lights, sample_light_field, write_light_field
@@ -105,7 +109,7 @@ def export_asset(
     previews: bool = True,
     preview_frames: int = 8,
     preview_size: int = 256,
-    up: tuple[float, float, float] = (0.0, 0.0, 1.0),
+    frame: UpFrame | None = None,
     chunk: int = 65536,
     manifest: bool = True,
     relit_bsdf: str = "paper",
@@ -113,8 +117,9 @@ def export_asset(
     """Export the asset of a fitted model into ``out_dir`` (the run folder).
 
     Writes ``mesh.ply`` (world), ``textures/base_color.png`` (sRGB), ``textures/orm.png``
-    (linear; R = occlusion = 1, G = roughness, B = metallic), ``asset.glb`` (world frame,
-    see :mod:`nepf_core.export.glb`), ``light_field.json``, ``lights.json`` and, unless
+    (linear; R = occlusion = 1, G = roughness, B = metallic), ``asset.glb``,
+    ``light_field.json`` and ``lights.json`` (the GLB's +Y-up frame ``x_glb = R x_world``, see
+    :mod:`nepf_core.up_axis`), ``frame.json`` (the up axis and ``R``) and, unless
     ``previews=False`` or rendering fails (logged as a warning), ``previews/*.png``, including the
     canonical relit previews ``previews/relit_canonical_K.png`` and their record
     ``previews/relit_canonical.json`` (:mod:`nepf_core.relight.previews`, BSDF ``relit_bsdf``).
@@ -127,8 +132,8 @@ def export_asset(
         max_faces: face budget after quadric decimation.
         mesh_resolution: marching-cubes grid points per axis over ``bbox``.
         device: where query tensors live (default: ``query.device`` if present, else CPU).
-        up: world up axis (a hint: the geometry is not rotated) for the turntable previews and
-            ``asset.extras.nepf.up`` in the GLB, which the web viewer reads.
+        frame: the world's up axis (:class:`~nepf_core.up_axis.UpFrame`; None: +z, "default"):
+            the GLB is rotated by its ``R`` so that it is +Y up; the previews orbit about it.
 
     Returns:
         manifest entries ``{"kind", "path", "bytes", "sha256"}`` of the files written here.
@@ -141,6 +146,8 @@ def export_asset(
     if device is None:
         device = getattr(query, "device", None) or "cpu"
     m = np.asarray(world_from_norm, dtype=np.float64)
+    frame = frame or UpFrame()
+    rot, up = frame.rotation, tuple(float(c) for c in frame.up_vector)
     t_all, cpu_all = time.perf_counter(), time.process_time()
     timings: dict[str, float] = {}
 
@@ -183,11 +190,13 @@ def export_asset(
     _write_bytes(out_dir / "textures" / "orm.png", orm_png)
 
     faces_uv = uvm.faces if np.linalg.det(m[:3, :3]) > 0 else uvm.faces[:, ::-1]
-    write_glb(out_dir / "asset.glb", vw[uvm.vmapping], nw[uvm.vmapping], uvm.uv, faces_uv,
+    # det(rot) = +1: rotating into the GLB frame keeps the winding (no second flip)
+    write_glb(out_dir / "asset.glb", vw[uvm.vmapping] @ rot.T, nw[uvm.vmapping] @ rot.T, uvm.uv, faces_uv,
               base_png, orm_png,
-              extras={"up": [float(c) for c in up], "texture_size": int(texture_size),
-                      "faces": int(len(uvm.faces)),
-                      "world_from_norm": m.tolist()})
+              extras={"up": [0.0, 1.0, 0.0], "world_up": frame.world_up, "up_source": frame.source,
+                      "gltf_from_world": rot.tolist(), "texture_size": int(texture_size),
+                      "faces": int(len(uvm.faces)), "world_from_norm": m.tolist()})
+    _write_bytes(out_dir / "frame.json", json.dumps(frame.to_json(), indent=2).encode())
     t = stage("glb", t)
 
     field = sample_light_field(query.light, query.normal, mesh, m, count=light_samples,
@@ -196,12 +205,12 @@ def export_asset(
     radius_w = float(np.linalg.norm(mesh.vertices - mesh.vertices.mean(0), axis=-1).max()) * scale
     lights = fit_lights(field["points"], field["directions"], field["intensity"],
                         object_radius=radius_w)
-    write_light_field(out_dir, field, lights)
+    write_light_field(out_dir, field, lights, gltf_from_world=rot)
     t = stage("light_field", t)
 
     written = [out_dir / "mesh.ply", out_dir / "textures" / "base_color.png",
                out_dir / "textures" / "orm.png", out_dir / "asset.glb",
-               out_dir / "light_field.json", out_dir / "lights.json"]
+               out_dir / "light_field.json", out_dir / "lights.json", out_dir / "frame.json"]
     if previews:
         written += render_previews(vw[uvm.vmapping], faces_uv, uvm.uv, nw[uvm.vmapping],
                                    out_dir / "textures" / "base_color.png", out_dir, lights,

@@ -1,13 +1,15 @@
 """Binary glTF 2.0 (GLB) writer for the baked asset (pygltflib, one mesh, one PBR material).
 
-Frame decision (documented, deliberate): the vertex data is written in the **input's world
-coordinates unchanged**, with no root-node rotation. glTF defines +Y as up; our inputs have
-their own convention (the synthetic and Blender scenes are Z-up, DTU is roughly -Y-up), and
-``lights.json`` / ``light_field.json`` are in the same world frame. Writing the world frame
-as-is keeps asset, lights and cameras consistent; a viewer that wants glTF's Y-up for a
-Z-up input rotates the whole scene by -90 degrees about X (the same rotation for the
-lights). The frame is recorded in ``asset.extras.nepf`` (``frame``, ``up`` = the world up
-axis hint given to ``export_asset``, ``world_from_norm``).
+Frame decision: glTF is +Y up and right-handed (specification §3.4), and Blender's importer,
+three.js' ``GLTFLoader`` and every viewer assume it. The caller (``export_asset``) passes the
+vertices and normals already rotated from the input's world into that frame,
+``x_glb = R x_world`` with ``R`` the proper rotation of :mod:`nepf_core.up_axis` that takes the
+world's up axis to +Y (world units and origin kept: no scale, no translation). The rotation is
+baked into the vertex data and the node has **no transform**, so a loader that ignores node
+transforms still gets the same frame; ``det R = +1``, so the triangle winding (counter-clockwise
+seen from the side the normal points to) is unchanged. ``asset.extras.nepf`` records ``frame``,
+``up`` (``[0, 1, 0]``), ``world_up`` (the input's axis), ``gltf_from_world`` (``R``) and
+``world_from_norm``.
 
 Contents:
 * one node -> one mesh -> one triangle primitive with ``POSITION`` (float32, min/max),
@@ -53,7 +55,7 @@ def write_glb(
     """Write a GLB.
 
     Args:
-        vertices: ``[V,3]`` world coordinates. normals: ``[V,3]`` (renormalised here).
+        vertices: ``[V,3]`` in the GLB frame (module docstring). normals: ``[V,3]`` (renormalised here).
         uv: ``[V,2]`` in [0,1], top-left origin. faces: ``[F,3]`` vertex indices.
         base_color_png, orm_png: encoded PNG files.
         extras: JSON-able dict stored under ``asset.extras.nepf``.
@@ -109,7 +111,7 @@ def write_glb(
     )
     gltf = g.GLTF2(
         asset=g.Asset(version="2.0", generator="nepf export",
-                      extras={"nepf": {"frame": "input world coordinates (not rotated to glTF +Y up)",
+                      extras={"nepf": {"frame": "glTF +Y up: x_glb = gltf_from_world @ x_world (input world units and origin)",
                                        **(extras or {})}}),
         scene=0,
         scenes=[g.Scene(nodes=[0])],

@@ -1,8 +1,10 @@
 """Light-field samples on the surface and a fitted light summary.
 
-``light_field.json`` holds N area-uniform surface samples (world frame) with the photon
-field's unit direction to the light, its intensity and the surface normal.
-``lights.json`` summarises them:
+``light_field.json`` holds N area-uniform surface samples with the photon field's unit
+direction to the light, its intensity and the surface normal. ``lights.json`` summarises them.
+Both are computed in the input's world frame and written in the GLB's (+Y up,
+:mod:`nepf_core.up_axis`; ``"frame": "glb"``), ``lights.json`` with its world-frame copy under
+``"world"``. The summary:
 
 * dominant direction ``d = normalize(sum_i I_i l_i)`` and its concentration
   ``|sum_i I_i l_i| / sum_i I_i`` (1 = all directions parallel);
@@ -34,7 +36,7 @@ import trimesh
 
 from .mesh import directions_to_world, evaluate_in_chunks, mesh_to_world
 
-__all__ = ["sample_light_field", "fit_lights", "write_light_field"]
+__all__ = ["sample_light_field", "fit_lights", "lights_to_frame", "write_light_field"]
 
 
 def sample_light_field(
@@ -147,19 +149,48 @@ def _rounded(a: np.ndarray, digits: int = 6) -> list:
     return np.round(np.asarray(a, dtype=np.float64), digits).tolist()
 
 
-def write_light_field(out_dir: str | Path, field: dict[str, np.ndarray], lights: dict) -> list[Path]:
-    """Write ``light_field.json`` (arrays rounded to 6 decimals) and ``lights.json``."""
+def lights_to_frame(lights: dict, rotation: np.ndarray, frame: str = "glb") -> dict:
+    """``lights`` (a :func:`fit_lights` summary, world frame) in the frame ``x' = R x``.
+
+    A rotation keeps lengths, so only the vectors move: ``dominant_direction``,
+    ``object_center`` and ``point_light.position``; radii, residuals, intensities and the
+    confidence are unchanged."""
+    r = np.asarray(rotation, np.float64)
+    out = {**lights, "frame": frame}
+    out["dominant_direction"] = (r @ np.asarray(lights["dominant_direction"], np.float64)).tolist()
+    out["object_center"] = (r @ np.asarray(lights["object_center"], np.float64)).tolist()
+    if lights.get("point_light"):
+        pl = dict(lights["point_light"])
+        pl["position"] = (r @ np.asarray(pl["position"], np.float64)).tolist()
+        out["point_light"] = pl
+    return out
+
+
+def write_light_field(out_dir: str | Path, field: dict[str, np.ndarray], lights: dict,
+                      gltf_from_world: np.ndarray | None = None) -> list[Path]:
+    """Write ``light_field.json`` (arrays rounded to 6 decimals) and ``lights.json``.
+
+    ``field`` and ``lights`` are in the input's world frame. With ``gltf_from_world`` (``R``,
+    :mod:`nepf_core.up_axis`) both files are written in the GLB's frame ``x_glb = R x_world``
+    (``"frame": "glb"``, ``R`` recorded as ``gltf_from_world``) and ``lights.json`` keeps the
+    world-frame summary under ``"world"``; without it, in the world frame (``"frame": "world"``).
+    """
     out_dir = Path(out_dir)
+    r = None if gltf_from_world is None else np.asarray(gltf_from_world, np.float64)
+    rot = (lambda a: np.asarray(a, np.float64)) if r is None else (lambda a: np.asarray(a, np.float64) @ r.T)
     lf = {
-        "frame": "world",
+        "frame": "world" if r is None else "glb",
         "count": int(len(field["points"])),
         "description": "area-uniform surface samples: points, unit normals, unit directions "
                        "towards the light, intensity (photon field units)",
-        "points": _rounded(field["points"]),
-        "normals": _rounded(field["normals"]),
-        "directions": _rounded(field["directions"]),
+        "points": _rounded(rot(field["points"])),
+        "normals": _rounded(rot(field["normals"])),
+        "directions": _rounded(rot(field["directions"])),
         "intensity": _rounded(field["intensity"]),
     }
+    if r is not None:
+        lf["gltf_from_world"] = r.tolist()
+        lights = {**lights_to_frame(lights, r), "gltf_from_world": r.tolist(), "world": lights}
     paths = []
     for name, obj in (("light_field.json", lf), ("lights.json", lights)):
         p = out_dir / name

@@ -12,7 +12,7 @@ Classification (first match wins, paths relative to the run folder, posix):
 | ``previews/**.png``, ``previews/relit_canonical.json`` | ``preview`` |
 | ``metrics.jsonl``, ``eval.json`` | ``metrics`` |
 | ``report.json``, ``summary.json`` (run_job), ``error_vs_time.txt`` (plot failure note) | ``report`` |
-| ``config.json`` | ``config`` |
+| ``config.json``, ``frame.json`` (the GLB's frame) | ``config`` |
 | other top-level ``*.png`` / ``*.svg`` / ``*.pdf`` (e.g. ``error_vs_time.png``) | ``plot`` |
 
 Not listed: ``manifest.json`` itself, ``checkpoints/**`` and ``*.pt`` (large, internal),
@@ -59,7 +59,7 @@ def artifact_kind(rel: str) -> str | None:
         return "metrics"
     if len(parts) == 1 and name in ("report.json", "summary.json", "error_vs_time.txt"):
         return "report"
-    if len(parts) == 1 and name == "config.json":
+    if len(parts) == 1 and name in ("config.json", "frame.json"):
         return "config"
     if len(parts) == 1 and suffix in (".png", ".svg", ".pdf"):
         return "plot"
@@ -92,7 +92,9 @@ def write_manifest(run_dir: str | Path) -> dict:
 
     Returns ``{"artifacts": [{"kind", "path", "bytes", "sha256"}, ...]}`` sorted by path, plus
     ``relit_previews`` (the lights and camera of the canonical relit previews) when the folder has
-    ``previews/relit_canonical.json``.
+    ``previews/relit_canonical.json``, and ``frame`` (the world's up axis and the rotation
+    ``gltf_from_world`` into the GLB's +Y-up frame, :mod:`nepf_core.up_axis`) when it has
+    ``frame.json``.
     """
     run_dir = Path(run_dir)
     entries = []
@@ -111,6 +113,9 @@ def write_manifest(run_dir: str | Path) -> dict:
     relit = run_dir / "previews" / "relit_canonical.json"
     if relit.is_file():  # the canonical relit previews' lights and camera (nepf_core/relight/previews.py)
         manifest["relit_previews"] = json.loads(relit.read_text())
+    frame = run_dir / "frame.json"
+    if frame.is_file():  # the GLB's frame (export_asset): the viewer's up axis follows from it
+        manifest["frame"] = json.loads(frame.read_text())
     out = run_dir / "manifest.json"
     tmp = run_dir / ".manifest.json.tmp"
     tmp.write_text(json.dumps(manifest, indent=2))

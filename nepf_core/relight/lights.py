@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nepf_core.up_axis import axis_from_vector, axis_vector, gltf_from_world
+
 
 class LightsError(ValueError):
     """A lights file that cannot be used (the message names the file and the light)."""
@@ -111,17 +113,19 @@ def lights_to_normalised(lights: PointLights, world_from_norm: np.ndarray) -> Po
 
 
 def horizontal_axes(up) -> tuple[np.ndarray, np.ndarray]:
-    """The azimuth axes ``(a_x, a_y)`` of the web viewer for an up axis (web/src/viewer3d.js,
-    ``UP_AXES``): +Z up -> (x, y), +Y up -> (z, x), -Y up -> (z, -x); any other up vector gets
-    a right-handed orthonormal pair orthogonal to it."""
+    """The azimuth axes ``(a_x, a_y)`` (world frame) of the web viewer for a world up axis.
+
+    The viewer shows the GLB, whose frame is ``x_glb = R x_world`` (:mod:`nepf_core.up_axis`),
+    +Y up, with azimuth measured from +Z towards +X (web/src/viewer3d.js, ``UP_AXES.y``); in the
+    world that is ``a_x = R^T e_z``, ``a_y = R^T e_x``: +Z up -> (-y, x), +Y up -> (z, x),
+    -Y up -> (z, -x). Any other up vector gets a right-handed orthonormal pair orthogonal to it
+    (``a_x x a_y = up`` in every case)."""
     u = np.asarray(up, np.float64)
     u = u / np.linalg.norm(u)
-    known = {(0, 0, 1): ((1, 0, 0), (0, 1, 0)), (0, 1, 0): ((0, 0, 1), (1, 0, 0)),
-             (0, -1, 0): ((0, 0, 1), (-1, 0, 0))}
-    key = tuple(int(round(c)) for c in u)
-    if np.allclose(u, key, atol=1e-9) and key in known:
-        ax, ay = known[key]
-        return np.asarray(ax, np.float64), np.asarray(ay, np.float64)
+    axis = axis_from_vector(u)
+    if axis is not None and np.allclose(u, axis_vector(axis), atol=1e-9):
+        r = gltf_from_world(axis)
+        return r.T @ np.array([0.0, 0.0, 1.0]), r.T @ np.array([1.0, 0.0, 0.0])
     helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     ax = helper - u * (helper @ u)
     ax /= np.linalg.norm(ax)

@@ -48,10 +48,11 @@ def write_relight_outputs(out, rgb: np.ndarray, alpha: np.ndarray) -> dict:
 
 
 def relight_run(run, lights_path, cameras, out, device: str = "auto", max_side: int = 0,
-                bsdf_kind: str | None = None, shadows: bool = True) -> dict:
+                bsdf_kind: str | None = None, shadows: bool = True, max_total_pixels: int | None = None) -> dict:
     """Relight every camera of the dataset ``cameras`` with the run's asset under the lights of
     ``lights_path`` (world frame) and write the outputs into ``out`` (module docstring). The
-    lights file is checked before anything is loaded. Returns :func:`write_relight_outputs`'
+    lights file is checked before anything is loaded; ``max_total_pixels``: the decoded-pixel cap
+    of the cameras' images (None: none). Returns :func:`write_relight_outputs`'
     dict plus ``rgb_linear`` and ``alpha`` (the arrays written)."""
     from nepf_core.rays import PixelSampler
     from nepf_core.reframe import load_held_out
@@ -63,7 +64,7 @@ def relight_run(run, lights_path, cameras, out, device: str = "auto", max_side: 
     lights = load_lights(lights_path)
     model, cfg, state = load_model(run, device)
     W = np.asarray(state["extra"]["world_from_norm"])
-    scene = load_held_out(cameras, W, max_side=max_side)
+    scene = load_held_out(cameras, W, max_side=max_side, max_total_pixels=max_total_pixels)
     sampler = PixelSampler(scene, next(model.parameters()).device)
     shading = state["run_state"].shading()
     opts = ShadeOptions(kind=bsdf_kind or run_bsdf_kind(cfg.render), lambertian=bool(cfg.render.lambertian),
@@ -76,5 +77,5 @@ def relight_run(run, lights_path, cameras, out, device: str = "auto", max_side: 
     model.train(was_training)
     Path(out).mkdir(parents=True, exist_ok=True)
     info = write_relight_outputs(out, rgb, alpha)
-    info.update(rgb_linear=rgb, alpha=alpha, bsdf_kind=opts.kind)
+    info.update(rgb_linear=rgb, alpha=alpha, bsdf_kind=opts.kind, working_size=[scene.width, scene.height])
     return info

@@ -46,6 +46,7 @@ from nepf_core.train.schedule import (coarse_to_fine, cos_anneal_ratio, progress
                                      scheduled_lr_factor)
 from nepf_core.train.setup import init_radiance_to_data, make_optimizer, resolve_device, unlit_pixels
 from nepf_core.train.surface_points import SurfacePointPrior
+from nepf_core.up_axis import camera_up_world
 from nepf_core.weight_average import ParamEMA
 
 
@@ -96,6 +97,8 @@ class TrainingRun:
         self.run_state = RunState.from_config(cfg)
         self.adapt = Adaptivity(RuleConfig.from_config(cfg, iters_fixed=iters_fixed, **(rules or {})), self.run_state)
         scene = self.scene = self.adapt.before_training(scene)   # maybe in the object's frame
+        # the cameras' mean up vector in the input's world: the export's up axis (nepf_core.up_axis)
+        self.camera_up = camera_up_world(scene.c2w, scene.world_from_norm)
         if targets is not None and targets.test_scene is not None:
             self.targets = targets = dataclasses.replace(
                 targets, test_scene=reframe_scene(targets.test_scene, scene.world_from_norm))
@@ -319,7 +322,8 @@ class TrainingRun:
         with self.clock.paused():
             extra = {"nonfinite": self.nonfinite, "adaptivity": self.adapt.state(),
                      "run_state": self.run_state.to_dict(), "config_name": self.cfg.name,
-                     "world_from_norm": np.asarray(self.scene.world_from_norm, dtype=np.float64).tolist()}
+                     "world_from_norm": np.asarray(self.scene.world_from_norm, dtype=np.float64).tolist(),
+                     "camera_up": [float(c) for c in self.camera_up]}
             if self.ema is not None:
                 extra["ema"] = self.ema.state_dict()
             kw = dict(model=self.model, optimizer=self.optimizer, step=self.step, wall_s=self.clock.wall(),

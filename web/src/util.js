@@ -101,3 +101,25 @@ export function metricsToCsv(records) {
   };
   return [keys.join(','), ...records.map((r) => keys.map((k) => esc(r[k])).join(','))].join('\n') + '\n';
 }
+
+/**
+ * The file name of a Content-Disposition header (RFC 6266): `filename*` (RFC 8187, UTF-8,
+ * percent-encoded) when present and readable, else the quoted or bare `filename`; null when none.
+ */
+export function filenameFromDisposition(header) {
+  if (!header) return null;
+  const star = /filename\*\s*=\s*([^;]+)/i.exec(header);
+  if (star) {
+    const m = /^\s*UTF-8'[^']*'(.+?)\s*$/i.exec(star[1]);
+    if (m) {
+      try {
+        return decodeURIComponent(m[1]);
+      } catch {
+        // malformed percent-encoding: fall back to filename
+      }
+    }
+  }
+  const plain = /filename\s*=\s*(?:"((?:[^"\\]|\\.)*)"|([^;\s]+))/i.exec(header);
+  if (!plain) return null;
+  return plain[1] !== undefined ? plain[1].replace(/\\(.)/g, '$1') : plain[2];
+}

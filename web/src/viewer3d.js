@@ -28,12 +28,34 @@ export const BACKGROUND = 0x15191e;
 /** The light handle moves on a sphere of this many asset radii around the asset. */
 const GIZMO_RADIUS = 1.45;
 
-/** Up-axis choices. The GLB is written in the input's world frame (nepf_core/export/glb.py). */
+/**
+ * Up-axis choices. The GLB is glTF's +Y up (nepf_core/up_axis.py): the export rotates the input
+ * world's up axis to +Y and the manifest's `frame` says so, so 'y' is the choice for every asset
+ * exported since; 'z' and '-y' remain for assets written in their input's world frame before.
+ */
 export const UP_AXES = {
-  z: { label: '+Z up (synthetic, Blender)', up: new THREE.Vector3(0, 0, 1), ax: new THREE.Vector3(1, 0, 0), ay: new THREE.Vector3(0, 1, 0), envRotation: new THREE.Euler(Math.PI / 2, 0, 0) },
-  y: { label: '+Y up (glTF)', up: new THREE.Vector3(0, 1, 0), ax: new THREE.Vector3(0, 0, 1), ay: new THREE.Vector3(1, 0, 0), envRotation: new THREE.Euler(0, 0, 0) },
-  '-y': { label: '−Y up (DTU)', up: new THREE.Vector3(0, -1, 0), ax: new THREE.Vector3(0, 0, 1), ay: new THREE.Vector3(-1, 0, 0), envRotation: new THREE.Euler(Math.PI, 0, 0) },
+  y: { label: '+Y up (glTF, NePF exports)', up: new THREE.Vector3(0, 1, 0), ax: new THREE.Vector3(0, 0, 1), ay: new THREE.Vector3(1, 0, 0), envRotation: new THREE.Euler(0, 0, 0) },
+  z: { label: '+Z up (assets exported before the glTF frame)', up: new THREE.Vector3(0, 0, 1), ax: new THREE.Vector3(1, 0, 0), ay: new THREE.Vector3(0, 1, 0), envRotation: new THREE.Euler(Math.PI / 2, 0, 0) },
+  '-y': { label: '−Y up (older DTU assets)', up: new THREE.Vector3(0, -1, 0), ax: new THREE.Vector3(0, 0, 1), ay: new THREE.Vector3(-1, 0, 0), envRotation: new THREE.Euler(Math.PI, 0, 0) },
 };
+
+/**
+ * The rotation `gltf_from_world` (3x3, rows) of the manifest's `frame` or the GLB's extras as a
+ * THREE.Matrix3, or null when absent or malformed (an asset in its world frame: identity).
+ */
+export function frameRotation(frame) {
+  const r = frame?.gltf_from_world;
+  if (!Array.isArray(r) || r.length !== 3 || !r.every((row) => Array.isArray(row) && row.length === 3)) return null;
+  const flat = r.flat().map(Number);
+  if (!flat.every(Number.isFinite)) return null;
+  return new THREE.Matrix3().set(...flat);
+}
+
+/** The viewer's up axis for the manifest's `frame` (`glb_up`, "+y" for every export since issue 34). */
+export function upFromFrame(frame) {
+  const u = typeof frame?.glb_up === 'string' ? frame.glb_up.toLowerCase().replace('+', '') : null;
+  return u && UP_AXES[u] ? u : null;
+}
 
 /** An up axis named in the GLB's asset.extras.nepf (`up` as "z"/"+z"/"-y" or a vector). */
 function upFromExtras(ex) {
@@ -296,8 +318,11 @@ export class AssetViewer {
       tint: '#ffffff',
       lightField: false,
       density: 0.25,
-      up: 'z', // our synthetic / Blender inputs are Z-up; the GLB keeps the input's frame
+      up: 'y', // the GLB is +Y up (its manifest's frame); older assets say otherwise in their extras
     };
+    // x_view = viewFromWorld x_world: the GLB's frame (manifest frame.gltf_from_world); null = identity
+    this.viewFromWorld = null;
+    this.frameFromManifest = false;
     // Default when lights.json is absent: irradiance pi at the asset centre from 3 radii, so a
     // white Lambertian surface facing the light shows ~1. The intensity slider multiplies it.
     this.baseLightIntensity = Math.PI * 9;
@@ -321,8 +346,11 @@ export class AssetViewer {
     const gltf = await new Promise((res, rej) => new GLTFLoader().parse(buffer, '', res, rej));
     const obj = gltf.scene;
     this.assetExtras = gltf.parser?.json?.asset?.extras?.nepf || null;
-    const hinted = upFromExtras(this.assetExtras);
-    if (hinted) this.state.up = hinted;
+    if (!this.frameFromManifest) { // an asset without a manifest frame: its own extras, else as it is
+      this.viewFromWorld = frameRotation(this.assetExtras);
+      const hinted = upFromExtras(this.assetExtras);
+      if (hinted) this.state.up = hinted;
+    }
     this.root.add(obj);
     obj.updateMatrixWorld(true);
     obj.traverse((o) => {
@@ -367,10 +395,42 @@ export class AssetViewer {
     return { meshes: this.meshes.length, radius: this.radius };
   }
 
-  /** Initialise the light from lights.json (see parseLights). */
+  /**
+   * The GLB's frame from the export manifest's `frame` (GET /jobs/{id}/artifacts: `frame`): the
+   * rotation `gltf_from_world` that world-frame records (relit_canonical.json, a world-frame
+   * lights.json) go through, and the up axis (`glb_up`). Call before loadGLB.
+   */
+  setFrame(frame) {
+    const r = frameRotation(frame);
+    if (!r) return false;
+    this.viewFromWorld = r;
+    this.frameFromManifest = true;
+    const up = upFromFrame(frame);
+    if (up) this.state.up = up;
+    return true;
+  }
+
+  /** A world-frame point or direction (Vector3) in the viewer's frame (the GLB's). */
+  worldToView(v) {
+    return v && this.viewFromWorld ? v.clone().applyMatrix3(this.viewFromWorld) : v;
+  }
+
+  /** A viewer-frame point (Vector3) in the input's world frame. */
+  viewToWorld(v) {
+    if (!v || !this.viewFromWorld) return v;
+    return v.clone().applyMatrix3(this.viewFromWorld.clone().transpose()); // a rotation: inverse = transpose
+  }
+
+  /**
+   * Initialise the light from lights.json (see parseLights). Its top level is in the GLB's frame
+   * (`frame: "glb"`); one that says `frame: "world"` goes through the manifest's rotation.
+   */
   setLightsFromJson(js) {
-    const l = js && js.__parsed ? js.__parsed : parseLights(js);
+    let l = js && js.__parsed ? js.__parsed : parseLights(js);
     if (!l) return;
+    if (js?.frame === 'world') {
+      l = { ...l, position: this.worldToView(l.position), direction: this.worldToView(l.direction), center: this.worldToView(l.center) };
+    }
     this.placeLight(l);
     this.lightsJson = l;
     this.applyLight();
@@ -380,13 +440,13 @@ export class AssetViewer {
   /**
    * Put the interactive light at a world position with a radiant intensity: one entry of
    * `previews/relit_canonical.json` (`position_world`, `intensity_rgb`; nepf_core/relight/previews.py).
-   * The GLB is in the input's world frame with no root transform, so the viewer's frame is that
-   * frame and the position converts to the sliders' azimuth / elevation / distance about the
-   * asset's centre exactly as lights.json does (placeLight); the light's colour is
+   * The position goes into the GLB's frame (worldToView) and converts to the sliders' azimuth /
+   * elevation / distance about the asset's centre exactly as lights.json does (placeLight); the
+   * light's colour is
    * `intensity_rgb / mean(intensity_rgb)` and its intensity the mean. Not the "Reset light" target.
    */
   setLightWorld(positionWorld, intensityRgb) {
-    const position = vec3(positionWorld);
+    const position = this.worldToView(vec3(positionWorld));
     if (!position) return false;
     const rgb = (Array.isArray(intensityRgb) ? intensityRgb : [1, 1, 1]).slice(0, 3).map(Number);
     const mean = rgb.every(Number.isFinite) ? (rgb[0] + rgb[1] + rgb[2]) / 3 : 0;
@@ -398,14 +458,14 @@ export class AssetViewer {
 
   /**
    * Look through a camera given in the world frame (`position_world`, `target_world`, `up`,
-   * `fov_y_deg`: the `camera` of relit_canonical.json). A camera `up` that is one of UP_AXES
-   * becomes the viewer's up axis first, so the orbit controls keep the same roll.
+   * `fov_y_deg`: the `camera` of relit_canonical.json), mapped into the GLB's frame. A camera `up`
+   * that is one of UP_AXES becomes the viewer's up axis first, so the orbit controls keep the same roll.
    */
   setCameraWorld(cam) {
-    const pos = vec3(cam?.position_world);
-    const target = vec3(cam?.target_world);
+    const pos = this.worldToView(vec3(cam?.position_world));
+    const target = this.worldToView(vec3(cam?.target_world));
     if (!pos || !target) return false;
-    const up = vec3(cam.up);
+    const up = this.worldToView(vec3(cam.up));
     if (up) {
       up.normalize();
       const key = Object.keys(UP_AXES).find((k) => UP_AXES[k].up.distanceTo(up) < 1e-6);
@@ -468,10 +528,13 @@ export class AssetViewer {
     };
   }
 
-  /** Attach light_field.json (see parseLightField). */
+  /** Attach light_field.json (see parseLightField; a `frame: "world"` file goes through worldToView). */
   setLightField(js) {
     this.lf = parseLightField(js);
     if (!this.lf) return 0;
+    if (js?.frame === 'world' && this.viewFromWorld) {
+      for (const k of ['positions', 'directions', 'normals']) this.lf[k] = this.lf[k].map((v) => this.worldToView(v));
+    }
     const n = this.lf.positions.length;
     let lo = Infinity;
     let hi = -Infinity;
@@ -837,9 +900,11 @@ export class AssetViewer {
    * What the frame just drawn shows, as data-* attributes of the canvas (read by the browser
    * tests and by anyone inspecting the page): `data-state` (loading | loaded), `data-frame`
    * (frames drawn so far), `data-channel`, `data-wireframe`, `data-glyphs` (light-field arrows
-   * drawn), `data-light-position` ("x y z", world), `data-light-intensity` (three.js' radiant
-   * intensity), `data-camera-position` ("x y z", world), `data-env`, `data-gizmo-x` / `data-gizmo-y` (the light
-   * gizmo's position in CSS px from the canvas's top-left corner).
+   * drawn), `data-light-position` ("x y z", the viewer's frame = the GLB's), `data-light-position-world`
+   * (the same in the input's world frame), `data-light-intensity` (three.js' radiant intensity),
+   * `data-camera-position` / `data-camera-position-world` (likewise), `data-up` (the up axis),
+   * `data-env`, `data-gizmo-x` / `data-gizmo-y` (the light gizmo's position in CSS px from the
+   * canvas's top-left corner).
    */
   describeFrame() {
     const d = this.canvas.dataset;
@@ -852,7 +917,10 @@ export class AssetViewer {
     d.glyphs = String(this.glyphCount());
     d.lightPosition = [p.x, p.y, p.z].join(' ');
     d.lightIntensity = String(this.light.intensity);
+    d.lightPositionWorld = this.viewToWorld(p.clone()).toArray().join(' ');
     d.cameraPosition = this.camera.position.toArray().join(' ');
+    d.cameraPositionWorld = this.viewToWorld(this.camera.position.clone()).toArray().join(' ');
+    d.up = this.state.up;
     d.env = this.state.env;
     d.gizmoX = g.x.toFixed(1);
     d.gizmoY = g.y.toFixed(1);

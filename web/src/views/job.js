@@ -4,12 +4,16 @@ import { api } from '../api.js';
 import { followJob } from '../live.js';
 import { JobCharts } from '../charts.js';
 import { AssetViewer, CHANNELS, ENVIRONMENTS, COLORMAP_CSS, UP_AXES } from '../viewer3d.js';
-import { h, clear, fmtBytes, fmtDuration, fmtTime, isFinal, metricsToCsv, slider, toast } from '../util.js';
+import { h, clear, filenameFromDisposition, fmtBytes, fmtDuration, fmtTime, isFinal, metricsToCsv, slider, toast } from '../util.js';
 import { progressBar, statusBadge } from './jobs.js';
 import { loadRelitPreviews } from './relit.js';
 
-/** Download a Response body under `name` (blob URL + <a download>). */
+/**
+ * Download a Response body (blob URL + <a download>) under its Content-Disposition name (the
+ * API's "<job name>-<artifact>"), else under `name`.
+ */
 async function saveResponse(res, name) {
+  name = filenameFromDisposition(res.headers.get('content-disposition')) || name;
   const blob = await res.blob();
   const url = URL.createObjectURL(blob);
   const a = h('a', { href: url, download: name, hidden: true });
@@ -207,6 +211,7 @@ export function renderJob(root, id) {
       const buf = await (await api.artifact(id, 'asset.glb')).arrayBuffer();
       if (stopped) return;
       viewer = new AssetViewer(viewerHost, { onChange: () => syncControls() });
+      viewer.setFrame(list?.frame); // the manifest's frame: the GLB is +Y up, world records are rotated into it
       await viewer.loadGLB(buf);
       if (stopped) return;
       viewerMsg.hidden = true;

@@ -9,7 +9,8 @@
 // DOM state (read by tests): the strip `#relit-previews` has data-state (none | loading |
 // loaded | error) and data-applied (index of the preview last put on the viewer); each
 // `figure.relit-preview` has data-index, data-azimuth, data-light-world ("x y z", the input's
-// world frame, which is the viewer's frame: the GLB has no root transform) and data-camera-world.
+// world frame, as the record gives it) and data-camera-world. The viewer maps both into the GLB's
+// +Y-up frame with the manifest's rotation (AssetViewer.setFrame / worldToView).
 import { api } from '../api.js';
 import { clear, h } from '../util.js';
 

@@ -7,12 +7,14 @@ import { h, clear, fmtBytes, toast } from '../util.js';
 /** Job options and their bounds (the API checks them again: api/job_config.py). */
 export const TEXTURE_SIZES = [256, 512, 1024, 2048];
 export const MAX_FACES_RANGE = [1000, 2000000];
+/** The input world's up axis, turned into glTF's +Y by the export ('' or 'auto': from the cameras). */
+export const UP_AXES = ['auto', '+x', '-x', '+y', '-y', '+z', '-z'];
 
 /**
  * The optional job options from the form's strings; empty means "the server's default".
  * Returns {options, problems}: problems name the field and the allowed values.
  */
-export function jobOptions({ holdoutEvery = '', maxImageSide = '', textureSize = '', maxFaces = '' }) {
+export function jobOptions({ holdoutEvery = '', maxImageSide = '', textureSize = '', maxFaces = '', upAxis = '' }) {
   const options = {};
   const problems = [];
   const int = (label, text, ok, allowed, key) => {
@@ -27,6 +29,11 @@ export function jobOptions({ holdoutEvery = '', maxImageSide = '', textureSize =
   int('Texture size', textureSize, (v) => TEXTURE_SIZES.includes(v), `one of ${TEXTURE_SIZES.join(', ')}`, 'texture_size');
   int('Mesh faces', maxFaces, (v) => v >= MAX_FACES_RANGE[0] && v <= MAX_FACES_RANGE[1],
     `an integer from ${MAX_FACES_RANGE[0]} to ${MAX_FACES_RANGE[1]}`, 'max_faces');
+  const up = String(upAxis).trim().toLowerCase();
+  if (up && up !== 'auto') {
+    if (UP_AXES.includes(up)) options.up_axis = up;
+    else problems.push({ code: 'invalid_config', file: 'Up axis', view: null, message: `must be one of ${UP_AXES.join(', ')} (got ${up})` });
+  }
   return { options, problems };
 }
 
@@ -164,6 +171,8 @@ export function renderUpload(root) {
     id: 'max-faces', name: 'max_faces', type: 'number', min: MAX_FACES_RANGE[0], max: MAX_FACES_RANGE[1], step: 1,
     inputmode: 'numeric', placeholder: 'server default', 'aria-describedby': 'faces-help',
   });
+  const upAxis = h('select', { id: 'up-axis-input', name: 'up_axis', 'aria-describedby': 'up-axis-help' },
+    UP_AXES.map((v) => h('option', { value: v, selected: v === 'auto' }, v === 'auto' ? 'auto (from the cameras)' : `${v} up`)));
   const progress = h('progress', { id: 'upload-progress', max: 100, value: 0, hidden: true, 'aria-label': 'Upload progress' });
   const progressText = h('span', { id: 'upload-progress-text', class: 'small muted', 'aria-live': 'polite' });
   const errorsEl = h('div', { id: 'upload-errors', role: 'alert', hidden: true, class: 'errors-box' });
@@ -228,6 +237,7 @@ export function renderUpload(root) {
       if (busy) return;
       const opts = jobOptions({
         holdoutEvery: holdout.value, maxImageSide: maxSide.value, textureSize: textureSize.value, maxFaces: maxFaces.value,
+        upAxis: upAxis.value,
       });
       if (opts.problems.length) {
         showErrors({ problems: opts.problems, message: 'Check the job options.' });
@@ -295,7 +305,10 @@ export function renderUpload(root) {
           'Larger images are resampled down to this at load; up to the server\'s ceiling. Smaller trains faster.')),
       h('div', { class: 'field' }, h('label', { for: 'texture-size' }, 'Texture size'), textureSize),
       h('div', { class: 'field' }, h('label', { for: 'max-faces' }, 'Mesh faces (at most)'), maxFaces,
-        h('span', { id: 'faces-help', class: 'small muted' }, `${MAX_FACES_RANGE[0]} to ${MAX_FACES_RANGE[1]}.`)))),
+        h('span', { id: 'faces-help', class: 'small muted' }, `${MAX_FACES_RANGE[0]} to ${MAX_FACES_RANGE[1]}.`)),
+      h('div', { class: 'field' }, h('label', { for: 'up-axis-input' }, 'Up axis of the input'), upAxis,
+        h('span', { id: 'up-axis-help', class: 'small muted' },
+          'The world axis that points up; the GLB turns it into glTF\'s +Y. Auto: the mean of the cameras\' up vectors.')))),
   h('div', { class: 'actions' }, submit, progress, progressText),
   errorsEl);
 
