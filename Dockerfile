@@ -37,6 +37,7 @@ RUN pip install --index-url "${TORCH_INDEX_URL}" "$(python -c 'import tomllib; \
 deps = tomllib.load(open("pyproject.toml", "rb"))["project"]["dependencies"]; \
 print(next(d for d in deps if d.startswith("torch")))')"
 COPY nepf_core ./nepf_core
+COPY nepf_json ./nepf_json
 COPY jobstore ./jobstore
 COPY api ./api
 COPY worker ./worker

@@ -35,6 +35,14 @@ async def api_error_handler(_request: Request, exc: ApiError) -> JSONResponse:
     return JSONResponse(exc.body(), status_code=exc.status, headers=exc.headers)
 
 
+async def internal_error_handler(_request: Request, exc: Exception) -> JSONResponse:
+    """Any exception no route turned into an :class:`ApiError` is a bug: a 500 in the API's
+    error shape (``internal_error``) without the Python text. Starlette re-raises the exception
+    after this answer, so the server logs it with its traceback (server-side only)."""
+    body = ApiError(500, "internal_error", "internal server error (logged on the server)").body()
+    return JSONResponse(body, status_code=500)
+
+
 def not_found(what: str = "job") -> ApiError:
     return ApiError(404, "not_found", f"{what} not found")
 

@@ -18,7 +18,7 @@ from jobstore.queue import ping_broker
 from jobstore.reconcile import Reconciler
 
 from .body_limit import BodyLimit, upload_body_cap, upload_too_large
-from .errors import ApiError, api_error_handler, http_error_handler
+from .errors import ApiError, api_error_handler, http_error_handler, internal_error_handler
 from .routes import jobs
 from .schemas import Health
 from .service import Service
@@ -54,6 +54,7 @@ def create_app(settings: Optional[Settings] = None, *, reconciler: Optional[bool
     app.state.service = svc
     app.add_exception_handler(ApiError, api_error_handler)
     app.add_exception_handler(StarletteHTTPException, http_error_handler)
+    app.add_exception_handler(Exception, internal_error_handler)
     app.add_middleware(BodyLimit, caps={("POST", "/jobs"): upload_body_cap(settings)},
                        error=lambda: upload_too_large(settings))
     if settings.cors_origins.strip():
