@@ -256,9 +256,12 @@ def get_metrics(job_id: str, svc: ServiceDep, owner: OwnerDep,
 # ------------------------------------------------------------------------------- events (SSE)
 @router.post("/jobs/{job_id}/events/ticket", response_model=Ticket, responses=ERRORS,
              summary="A short-lived signed ticket for EventSource (which cannot send headers)")
-def events_ticket(job_id: str, svc: ServiceDep, owner: OwnerDep):
+def events_ticket(job_id: str, svc: ServiceDep, owner: OwnerDep, creds: CredsDep):
     job = _load(svc, owner, job_id)
-    t = make_ticket(svc.secret, owner, job.id, svc.settings.ticket_ttl_s)
+    token_id = svc.verifier.token_id(creds.credentials) if creds is not None else None
+    if token_id is None:   # revoked between the (cached) check of the route and now
+        raise ApiError(401, "unauthorized", "missing or invalid bearer token", headers={"WWW-Authenticate": "Bearer"})
+    t = make_ticket(svc.secret, owner, job.id, svc.settings.ticket_ttl_s, token_id)
     return Ticket(ticket=t, expires_in=svc.settings.ticket_ttl_s, url=f"/jobs/{job.id}/events?ticket={t}")
 
 
@@ -277,7 +280,10 @@ async def job_events(job_id: str, request: Request, svc: ServiceDep, creds: Cred
                      last_event_id: Annotated[Optional[str], Header(alias="Last-Event-ID")] = None):
     owner = owner_from_header(svc, creds)
     if owner is None and ticket:
-        owner = check_ticket(svc.secret, ticket, job_id)
+        claims = check_ticket(svc.secret, ticket, job_id)
+        # the token the ticket was minted with must still be live now, at connect time
+        if claims is not None and await run_in_threadpool(svc.verifier.token_is_live, claims[1], claims[0]):
+            owner = claims[0]
     if owner is None:
         raise ApiError(401, "unauthorized", "missing or invalid bearer token or ticket",
                        headers={"WWW-Authenticate": "Bearer"})
@@ -351,12 +357,21 @@ def list_artifacts(job_id: str, svc: ServiceDep, owner: OwnerDep):
     return ArtifactList(artifacts=items, manifest=man is not None, status=job.status)
 
 
+#: the run folder's sub-folder that is never served (resume state, not an asset)
+PRIVATE_DIRS = ("checkpoints",)
+
+
 def safe_artifact_path(base: Path, rel: str) -> Optional[Path]:
-    """``base/rel`` if it is a regular file inside ``base`` (after resolving links); else None."""
+    """``base/rel`` if it is a regular file inside ``base`` and outside ``checkpoints/``; else None.
+
+    Both tests are made on the path with every link resolved, not on the path as written: a
+    link inside the run folder (``x.pt -> checkpoints/latest.pt``) must not serve what its target
+    would not (issue 37). The written form is checked too, so a 404 does not depend on whether
+    the file exists."""
     if not rel or "\x00" in rel or rel.startswith(("/", "\\")) or "\\" in rel:
         return None
     parts = rel.split("/")
-    if any(p in ("", ".", "..") for p in parts) or parts[0] == "checkpoints":
+    if any(p in ("", ".", "..") for p in parts) or parts[0] in PRIVATE_DIRS:
         return None
     try:
         root = base.resolve(strict=True)
@@ -364,6 +379,8 @@ def safe_artifact_path(base: Path, rel: str) -> Optional[Path]:
     except (OSError, RuntimeError, ValueError):
         return None
     if root not in target.parents or not target.is_file():
+        return None
+    if target.relative_to(root).parts[0] in PRIVATE_DIRS:
         return None
     return target
 
