@@ -18,6 +18,7 @@ from jobstore.queue import ping_broker
 from jobstore.reconcile import Reconciler
 
 from .body_limit import BodyLimit, upload_body_cap, upload_too_large
+from .header_limit import HeaderLimit
 from .errors import ApiError, api_error_handler, http_error_handler, internal_error_handler
 from .routes import jobs
 from .schemas import Health
@@ -61,6 +62,8 @@ def create_app(settings: Optional[Settings] = None, *, reconciler: Optional[bool
         from fastapi.middleware.cors import CORSMiddleware
         app.add_middleware(CORSMiddleware, allow_origins=[o.strip() for o in settings.cors_origins.split(",")],
                            allow_methods=["*"], allow_headers=["*"])
+    # outermost: a head over the cap is refused before CORS, the body cap or any route sees it
+    app.add_middleware(HeaderLimit, limit=settings.max_header_bytes)
     app.include_router(jobs.router)
 
     @app.get("/healthz", response_model=Health, tags=["health"], summary="The process is up")
