@@ -73,7 +73,6 @@ def test_a_resume_after_a_kill_lists_each_step_once(small_scene, tmp_path):
     assert sorted(_losses(b)) == [1, 2, 3, 4, 5]
     shutil.rmtree(b / "checkpoints")
     shutil.copytree(saved, b / "checkpoints")            # the state a kill -9 at step 5 leaves
-    assert checkpoint_step(b) == 3
     r = fit(small_scene, b, _cfg(), device="cpu", resume=True)
     assert r.step == 6
     steps = [json.loads(l)["step"] for l in (b / "metrics.jsonl").read_text().splitlines()]

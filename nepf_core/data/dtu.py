@@ -5,6 +5,9 @@ Layout (IDR, NeuS):
         * ``world_mat_i`` ``[4, 4]`` or ``[3, 4]``: ``K [R | t]``, world -> pixels (OpenCV,
           pixel centres at integer coordinates);
         * ``scale_mat_i`` ``[4, 4]`` (optional): normalised unit sphere -> world.
+    Only these members are read, one at a time, each ``.npy`` header (real dtype, one of these
+    shapes, a bounded size) checked before its data (``npz.py``): other members are never
+    decompressed.
     ``image/`` (or ``images/``): PNG/JPEG sorted by name; the i-th file is view ``i``.
     ``mask/`` (or ``masks/``, optional): same count, any mode; converted to luma and
     thresholded at 127, so 3-channel soft-edged DTU masks work.
