@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from service_fixtures import leftover_files, make_dtu_dir, zip_dir
+from service_fixtures import leftover_files, make_dtu_dir
 from test_api_dataset_limits import dtu_zip, ingp_zip, post, service  # noqa: F401 - service is a fixture
 
 # ------------------------------------------------------------------ config part (finding 1)

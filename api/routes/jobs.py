@@ -6,7 +6,6 @@ import asyncio
 import datetime as dt
 import json
 import logging
-import mimetypes
 import os
 import re
 import shutil
@@ -23,6 +22,7 @@ from sqlalchemy.exc import IntegrityError
 from jobstore.models import ACTIVE, TERMINAL, Job, new_id, utcnow
 from jobstore.queue import enqueue
 
+from ..artifacts import ARTIFACT_MEDIA_TYPES, CONTENT_TYPES, content_type_for, safe_artifact_path  # noqa: F401
 from ..auth import check_ticket, make_ticket
 from ..deps import CredsDep, OwnerDep, ServiceDep, owner_from_header
 from ..errors import ApiError, not_found
@@ -38,23 +38,6 @@ JOB_ID = re.compile(r"^[0-9a-f]{32}$")
 
 ERRORS = {401: {"model": ErrorBody, "description": "Missing or invalid token"},
           404: {"model": ErrorBody, "description": "No such job for this owner"}}
-
-CONTENT_TYPES = {".glb": "model/gltf-binary", ".gltf": "model/gltf+json", ".ply": "application/octet-stream",
-                 ".obj": "model/obj", ".mtl": "model/mtl", ".png": "image/png", ".jpg": "image/jpeg",
-                 ".jpeg": "image/jpeg", ".json": "application/json", ".jsonl": "application/x-ndjson",
-                 ".exr": "image/x-exr", ".npz": "application/octet-stream", ".npy": "application/octet-stream",
-                 ".txt": "text/plain; charset=utf-8", ".csv": "text/csv; charset=utf-8",
-                 ".mp4": "video/mp4", ".html": "text/html; charset=utf-8", ".pt": "application/octet-stream"}
-
-
-#: every media type the artifact route serves (declared in its OpenAPI 200 response)
-ARTIFACT_MEDIA_TYPES = sorted({t.split(";")[0] for t in CONTENT_TYPES.values()})
-
-
-def content_type_for(path: str) -> str:
-    ext = os.path.splitext(path)[1].lower()
-    return CONTENT_TYPES.get(ext) or mimetypes.guess_type(path)[0] or "application/octet-stream"
-
 
 def _utc(d):
     """The DB stores naive UTC; the API says so explicitly."""
@@ -355,34 +338,6 @@ def list_artifacts(job_id: str, svc: ServiceDep, owner: OwnerDep):
         items.append(Artifact(kind=a.get("kind"), path=p, bytes=a.get("bytes"), sha256=a.get("sha256"),
                               content_type=content_type_for(p), url=f"/jobs/{job.id}/artifacts/{p}"))
     return ArtifactList(artifacts=items, manifest=man is not None, status=job.status)
-
-
-#: the run folder's sub-folder that is never served (resume state, not an asset)
-PRIVATE_DIRS = ("checkpoints",)
-
-
-def safe_artifact_path(base: Path, rel: str) -> Optional[Path]:
-    """``base/rel`` if it is a regular file inside ``base`` and outside ``checkpoints/``; else None.
-
-    Both tests are made on the path with every link resolved, not on the path as written: a
-    link inside the run folder (``x.pt -> checkpoints/latest.pt``) must not serve what its target
-    would not (issue 37). The written form is checked too, so a 404 does not depend on whether
-    the file exists."""
-    if not rel or "\x00" in rel or rel.startswith(("/", "\\")) or "\\" in rel:
-        return None
-    parts = rel.split("/")
-    if any(p in ("", ".", "..") for p in parts) or parts[0] in PRIVATE_DIRS:
-        return None
-    try:
-        root = base.resolve(strict=True)
-        target = (base / rel).resolve(strict=True)
-    except (OSError, RuntimeError, ValueError):
-        return None
-    if root not in target.parents or not target.is_file():
-        return None
-    if target.relative_to(root).parts[0] in PRIVATE_DIRS:
-        return None
-    return target
 
 
 @router.get("/jobs/{job_id}/artifacts/{path:path}", responses={**ERRORS, 200: {
