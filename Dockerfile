@@ -40,6 +40,7 @@ COPY pyproject.toml constraints.txt ./
 # torch first (its own layer): the version pinned in constraints.txt, CPU or CUDA wheel
 RUN pip install --index-url "${TORCH_INDEX_URL}" -c constraints.txt torch
 COPY nepf_core ./nepf_core
+COPY nepf_json ./nepf_json
 COPY jobstore ./jobstore
 COPY api ./api
 COPY worker ./worker

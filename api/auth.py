@@ -3,6 +3,8 @@
 Tokens are 256-bit random strings, so a fast unsalted hash is enough: there is nothing to
 brute-force, and the DB never holds a usable token. A verified token is cached in the API
 process for ``NEPF_AUTH_CACHE_S`` seconds (revocation takes effect after at most that long).
+An SSE ticket names the token it was minted with, and opening a stream checks, uncached, that
+the token is still live: a revoked token's tickets stop working at once.
 """
 
 from __future__ import annotations
@@ -76,6 +78,24 @@ class TokenVerifier:
         return owner
 
 
+    def token_id(self, token: str) -> Optional[int]:
+        """The row id of a live token (what a ticket names), or None. Uncached: minting a ticket
+        is rare, and the id must belong to this very token."""
+        if not token or len(token) > 512:
+            return None
+        with self.Session() as s:
+            row = s.execute(select(Token.id).where(Token.token_hash == hash_token(token),
+                                                   Token.revoked.is_(False))).first()
+        return row[0] if row else None
+
+    def token_is_live(self, token_id: int, owner: str) -> bool:
+        """True while token ``token_id`` of ``owner`` exists and is not revoked. Uncached: an SSE
+        connect is rare, and a revoked token's tickets must stop at once (issue 37)."""
+        with self.Session() as s:
+            return s.execute(select(Token.id).where(Token.id == token_id, Token.owner == owner,
+                                                    Token.revoked.is_(False))).first() is not None
+
+
 def load_secret(data_dir: Path, configured: Optional[str]) -> bytes:
     """HMAC key: ``NEPF_SECRET_KEY`` or a random key kept (0600) in the data dir."""
     if configured:
@@ -108,16 +128,19 @@ def _unb64(s: str) -> bytes:
     return base64.urlsafe_b64decode(s + "=" * (-len(s) % 4))
 
 
-def make_ticket(secret: bytes, owner: str, job_id: str, ttl_s: int) -> str:
-    """A signed ``{owner, job, exp}``: good for one job's event stream, for ``ttl_s`` seconds."""
-    body = _b64(json.dumps({"o": owner, "j": job_id, "e": int(time.time()) + int(ttl_s)},
+def make_ticket(secret: bytes, owner: str, job_id: str, ttl_s: int, token_id: int) -> str:
+    """A signed ``{owner, job, exp, token}``: good for one job's event stream, for ``ttl_s``
+    seconds, and only while the bearer token it was minted with (row ``token_id``) is not revoked."""
+    body = _b64(json.dumps({"o": owner, "j": job_id, "e": int(time.time()) + int(ttl_s), "k": int(token_id)},
                            separators=(",", ":")).encode())
     sig = _b64(hmac.new(secret, body.encode(), hashlib.sha256).digest())
     return f"{body}.{sig}"
 
 
-def check_ticket(secret: bytes, ticket: str, job_id: str) -> Optional[str]:
-    """The owner named by a valid, unexpired ticket for ``job_id``; otherwise None."""
+def check_ticket(secret: bytes, ticket: str, job_id: str) -> Optional[tuple[str, int]]:
+    """``(owner, token_id)`` of a valid, unexpired ticket for ``job_id``; otherwise None. Whether
+    the token is still live is the caller's check (:meth:`TokenVerifier.token_is_live`): it needs
+    the DB. A ticket without a token id (minted before tickets carried one) is invalid."""
     try:
         body, sig = ticket.split(".", 1)
         want = _b64(hmac.new(secret, body.encode(), hashlib.sha256).digest())
@@ -126,7 +149,9 @@ def check_ticket(secret: bytes, ticket: str, job_id: str) -> Optional[str]:
         data = json.loads(_unb64(body))
         if data.get("j") != job_id or int(data.get("e", 0)) < time.time():
             return None
-        owner = data.get("o")
-        return owner if isinstance(owner, str) else None
+        owner, token_id = data.get("o"), data.get("k")
+        if not isinstance(owner, str) or not isinstance(token_id, int) or isinstance(token_id, bool):
+            return None
+        return owner, token_id
     except Exception:  # noqa: BLE001 - any malformed ticket is just invalid
         return None

@@ -177,12 +177,13 @@ def serve_main(argv: list[str] | None = None) -> int:
 
     import uvicorn
 
+    from .header_limit import uvicorn_options
     from .main import create_app
 
     app = create_app(settings)
     try:
         uvicorn.run(app, host=args.host, port=args.port, log_level=args.log_level.lower(),
-                    timeout_graceful_shutdown=3)
+                    timeout_graceful_shutdown=3, **uvicorn_options(settings.max_header_bytes))
     finally:
         if sup is not None:
             def force(signum, frame) -> None:

@@ -7,6 +7,7 @@ Body: ``{"detail": "<human message>", "code": "<machine code>", "errors": [...]}
 
 from __future__ import annotations
 
+from http import HTTPStatus
 from typing import Any, Optional
 
 from fastapi import Request
@@ -33,6 +34,14 @@ class ApiError(Exception):
 
 async def api_error_handler(_request: Request, exc: ApiError) -> JSONResponse:
     return JSONResponse(exc.body(), status_code=exc.status, headers=exc.headers)
+
+
+async def internal_error_handler(_request: Request, exc: Exception) -> JSONResponse:
+    """Any exception no route turned into an :class:`ApiError` is a bug: a 500 in the API's
+    error shape (``internal_error``) without the Python text. Starlette re-raises the exception
+    after this answer, so the server logs it with its traceback (server-side only)."""
+    body = ApiError(500, "internal_error", "internal server error (logged on the server)").body()
+    return JSONResponse(body, status_code=500)
 
 
 def not_found(what: str = "job") -> ApiError:
@@ -66,11 +75,25 @@ def allowed_methods(routes, path: str, root_path: str = "") -> list[str]:
     return sorted(api if path_known else static)
 
 
+def http_error_code(status: int) -> str:
+    """``not_found`` for 404, ``bad_request`` for 400...: the status phrase as a code."""
+    try:
+        return HTTPStatus(status).phrase.lower().replace(" ", "_").replace("-", "_")
+    except ValueError:
+        return f"http_{status}"
+
+
 async def http_error_handler(request: Request, exc: StarletteHTTPException):
-    """FastAPI's handler, except that a 405 lists every allowed method in ``Allow`` (Starlette's
-    own lists only the first route that matched the path) and has the API's error shape."""
-    if exc.status_code != 405:
+    """Every ``HTTPException`` (an unknown API path, a file the static viewer does not have, a
+    405) in the API's error shape, ``{"detail", "code", "errors"}``; FastAPI's own handler gave
+    the viewer's 404s as ``{"detail": "Not Found"}`` (issue 37). A 405 lists every allowed method
+    in ``Allow`` (Starlette's own lists only the first route that matched the path)."""
+    if exc.status_code in (204, 304) or exc.status_code < 400:   # no body allowed / not an error
         return await http_exception_handler(request, exc)
+    if exc.status_code != 405:
+        detail = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+        body = ApiError(exc.status_code, http_error_code(exc.status_code), detail).body()
+        return JSONResponse(body, status_code=exc.status_code, headers=exc.headers)
     scope = request.scope
     allow = ", ".join(allowed_methods(request.app.routes, scope["path"], scope.get("root_path", "")))
     body = ApiError(405, "method_not_allowed", f"{request.method} is not allowed here; allowed: {allow}")

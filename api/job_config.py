@@ -4,13 +4,18 @@
 Keys (all optional): ``preset``, ``iters``, ``time_budget_s``, ``name``, ``max_image_side``,
 ``holdout_every``, ``texture_size``, ``max_faces``, ``up_axis`` (docs/SERVICE.md, "Job options").
 :func:`parse_config` checks what needs no dataset; :func:`resolve_holdout_every` the rest once
-the validator has counted the views. Nothing here imports ``nepf_core``.
+the validator has counted the views. Nothing here imports ``nepf_core``;
+the JSON is parsed by :mod:`nepf_json` (depth, number and string length bounded, duplicate keys
+refused), the one parser the dataset loaders use too.
 """
 
 from __future__ import annotations
 
 import json
 from typing import Optional
+
+from nepf_json import DEFAULT_LIMITS, JsonInputError
+from nepf_json import loads as bounded_json_loads
 
 from .errors import ApiError
 from .settings import Settings
@@ -28,9 +33,9 @@ def parse_config(raw: Optional[bytes], settings: Settings) -> dict:
     cfg: dict = {}
     if raw is not None and raw.strip():
         try:
-            cfg = json.loads(raw.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ApiError(422, "invalid_config", f"'config' is not valid JSON: {exc}") from None
+            cfg = bounded_json_loads(raw, source="'config'", limits=DEFAULT_LIMITS)
+        except JsonInputError as exc:
+            raise ApiError(422, "invalid_config", str(exc)) from None
         if not isinstance(cfg, dict):
             raise ApiError(422, "invalid_config", "'config' must be a JSON object")
     allowed = {"preset", "iters", "time_budget_s", "name", "max_image_side", "holdout_every", "texture_size",

@@ -18,7 +18,8 @@ from jobstore.queue import ping_broker
 from jobstore.reconcile import Reconciler
 
 from .body_limit import BodyLimit, upload_body_cap, upload_too_large
-from .errors import ApiError, api_error_handler, http_error_handler
+from .header_limit import HeaderLimit
+from .errors import ApiError, api_error_handler, http_error_handler, internal_error_handler
 from .routes import jobs
 from .schemas import Health
 from .service import Service
@@ -54,6 +55,7 @@ def create_app(settings: Optional[Settings] = None, *, reconciler: Optional[bool
     app.state.service = svc
     app.add_exception_handler(ApiError, api_error_handler)
     app.add_exception_handler(StarletteHTTPException, http_error_handler)
+    app.add_exception_handler(Exception, internal_error_handler)
     app.add_middleware(BodyLimit, caps={("POST", "/jobs"): upload_body_cap(settings)},
                        error=lambda: upload_too_large(settings))
     if settings.cors_origins.strip():
@@ -62,6 +64,8 @@ def create_app(settings: Optional[Settings] = None, *, reconciler: Optional[bool
                            allow_methods=["*"], allow_headers=["*"],
                            # a viewer on another origin reads the download's name and its validators
                            expose_headers=["Content-Disposition", "ETag", "Last-Modified", "Content-Range"])
+    # outermost: a head over the cap is refused before CORS, the body cap or any route sees it
+    app.add_middleware(HeaderLimit, limit=settings.max_header_bytes)
     app.include_router(jobs.router)
 
     @app.get("/healthz", response_model=Health, tags=["health"], summary="The process is up")

@@ -47,6 +47,8 @@ class Settings(BaseSettings):
         DEFAULT_IMAGE_SIDE, ge=0, description="Working side of a job that asks none (capped by NEPF_MAX_IMAGE_SIDE; 0: the ceiling). "
                                "A CPU step draws a fixed number of rays, so a larger side only adds load time, memory "
                                "and evaluation cost within a job's budget (docs/SERVICE.md, 'Limits').")
+    max_header_bytes: int = Field(
+        65536, description="Cap on a request's line and headers together; past it a 431 (0: none).")
     validate_timeout_s: float = Field(300.0, description="Timeout of the dataset validation subprocess.")
     validate_max_memory_mb: int = Field(4096, description="Address-space cap of the validation subprocess (0: none).")
     python_executable: Optional[str] = Field(

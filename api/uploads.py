@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import subprocess
 import sys
@@ -25,6 +26,7 @@ from .errors import ApiError
 from .settings import Settings
 from .zip_safety import MB
 
+log = logging.getLogger("nepf.api")
 REPO_ROOT = Path(__file__).resolve().parent.parent
 MAX_CONFIG_BYTES = 64 * 1024
 
@@ -240,21 +242,33 @@ def validate_dataset(root: Path, settings: Settings, max_side: Optional[int] = N
     if proc.returncode == 0 and isinstance(data, dict) and data.get("ok") is True:
         return data
     if proc.returncode == 2 and isinstance(data, dict) and data.get("ok") is False:
-        errors = [e for e in data.get("errors") or [] if isinstance(e, dict)]
-        if not errors:
-            errors = [{"code": "invalid_dataset", "message": "the dataset is invalid", "file": None, "view": None}]
-        first = errors[0]
-        if first.get("code") == "too_many_pixels":
-            first["message"] = f"{first.get('message')} (NEPF_MAX_TOTAL_PIXELS)"
-        where = ", ".join(x for x in (f"file {first.get('file')}" if first.get("file") else "",
-                                      f"view {first.get('view')}" if first.get("view") is not None else "") if x)
-        msg = f"[{where}] {first.get('message')}" if where else str(first.get("message"))
-        return_err = ApiError(422, str(first.get("code") or "invalid_dataset"), msg, errors=errors)
-        raise return_err
-    tail = proc.stderr.decode("utf-8", "replace").strip().splitlines()[-3:]
-    if "MemoryError" in " ".join(tail):
-        raise ApiError(422, "dataset_too_large",
-                       f"validating the dataset needed more than {settings.validate_max_memory_mb} MB "
-                       "(NEPF_VALIDATE_MAX_MEMORY_MB)")
-    raise ApiError(500, "validator_failed",
-                   f"the dataset validator failed (exit {proc.returncode}): {' | '.join(tail)}")
+        raise _dataset_error(data, settings)
+    tail = proc.stderr.decode("utf-8", "replace").strip().splitlines()
+    if "MemoryError" in " ".join(tail[-3:]):
+        raise ApiError(422, "dataset_too_large", _memory_message(settings))
+    # a bug (exit 3) or a crash: the traceback goes to the server's log, never into the answer
+    log.error("dataset validator failed (exit %s):\n%s", proc.returncode, "\n".join(tail[-60:]))
+    raise ApiError(500, "internal_error", "validating the dataset failed on an internal error; "
+                                          "it is logged on the server")
+
+
+def _memory_message(settings: Settings) -> str:
+    return (f"validating the dataset needed more than {settings.validate_max_memory_mb} MB "
+            "(NEPF_VALIDATE_MAX_MEMORY_MB)")
+
+
+def _dataset_error(data: dict, settings: Settings) -> ApiError:
+    """The 422 for the validator's ``{"ok": false, "errors": [...]}``: the first error's code and
+    message (with the setting that sets a limit named), all of them in ``errors``."""
+    errors = [e for e in data.get("errors") or [] if isinstance(e, dict)]
+    if not errors:
+        errors = [{"code": "invalid_dataset", "message": "the dataset is invalid", "file": None, "view": None}]
+    first = errors[0]
+    if first.get("code") == "too_many_pixels":
+        first["message"] = f"{first.get('message')} (NEPF_MAX_TOTAL_PIXELS)"
+    if first.get("code") == "dataset_too_large":
+        first["message"] = _memory_message(settings)
+    where = ", ".join(x for x in (f"file {first.get('file')}" if first.get("file") else "",
+                                  f"view {first.get('view')}" if first.get("view") is not None else "") if x)
+    msg = f"[{where}] {first.get('message')}" if where else str(first.get("message"))
+    return ApiError(422, str(first.get("code") or "invalid_dataset"), msg, errors=errors)

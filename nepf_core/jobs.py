@@ -6,7 +6,9 @@ Contract (stable; the worker codes against it):
             device="auto", callbacks=None, resume=True, ...) -> dict
 
 * Raises ``nepf_core.data.DatasetError`` for bad input (before any training).
-* Resumes from ``run_dir/checkpoints/latest.pt`` when ``resume`` and it exists.
+* Resumes from ``run_dir/checkpoints/latest.pt`` when ``resume`` and it exists: the first
+  progress report is then ``stage: "resuming"`` at the checkpoint's step, and ``metrics.jsonl``
+  is cut back to the checkpoint (``nepf_core/resume.py``), so each step is listed once.
 * Returns a summary ``{"status": "succeeded"|"cancelled"|"stopped_early", "step", "total",
   "wall_s", "manifest": "manifest.json" (relative to run_dir, or None), "report": {...},
   "working_size": [W, H] the images were trained at, "split": {"holdout_every", "n_train",
@@ -118,6 +120,20 @@ EXPORT_DEFAULTS = {
 }
 
 
+def start_progress(run: Path, total: int, resume: bool) -> dict:
+    """The first progress report: ``loading`` at step 0, or, when a checkpoint will be resumed,
+    ``resuming`` at its step (``checkpoints/latest.json``, ``nepf_core/resume.py``), so that the
+    progress a service shows does not drop to 0 while the data loads again."""
+    from nepf_core.resume import read_checkpoint_info
+
+    info = read_checkpoint_info(run) if resume and (run / "checkpoints" / "latest.pt").exists() else None
+    if info is None:
+        return {"step": 0, "total": 0, "fraction": 0.0, "stage": "loading", "eta_s": None, "wall_s": 0.0}
+    step = info["step"]
+    return {"step": step, "total": total, "fraction": min(1.0, step / max(total, 1)), "stage": "resuming",
+            "eta_s": None, "wall_s": float(info.get("wall_s") or 0.0)}
+
+
 def run_job(data_dir, run_dir, *, preset: str = "fast", iters=None, time_budget_s=None,
             device: str = "auto", callbacks: FitCallbacks | None = None, resume: bool = True,
             export: bool = True, texture_size: int | None = None, max_faces: int | None = None,
@@ -134,10 +150,10 @@ def run_job(data_dir, run_dir, *, preset: str = "fast", iters=None, time_budget_
     cb = callbacks or FitCallbacks()
     run = Path(run_dir)
     run.mkdir(parents=True, exist_ok=True)
-    cb.progress({"step": 0, "total": 0, "fraction": 0.0, "stage": "loading", "eta_s": None, "wall_s": 0.0})
+    cfg = build_config(preset, iters, overrides)
+    cb.progress(start_progress(run, cfg.train.iters, resume))
     scene = load_scene(data_dir, split="train", max_side=max_side, max_total_pixels=max_total_pixels)
     log(working_size_text(scene, max_side))
-    cfg = build_config(preset, iters, overrides)
     scene, targets, split = held_out_targets(scene, holdout_every, has_test_set=test_dir is not None,
                                              eval_pixels=EVAL_PIXEL_BUDGET)
     if test_dir is not None:

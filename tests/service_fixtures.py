@@ -21,6 +21,7 @@ import numpy as np
 from PIL import Image
 
 from nepf_core.pipeline import JobRequest
+from nepf_core.resume import drop_records_after
 
 REPO = Path(__file__).resolve().parent.parent
 TESTS = Path(__file__).resolve().parent
@@ -146,8 +147,11 @@ def fake_pipeline(request: JobRequest) -> dict:
     """Stands in for ``nepf_core.pipeline.run_pipeline`` in service tests (``NEPF_PIPELINE=
     service_fixtures:fake_pipeline``): same contract, no torch.
 
-    Steps sleep ``NEPF_FAKE_STEP_S``; a checkpoint (``checkpoints/latest.json``) every 5 steps;
-    metrics.jsonl with train/sync/test records; export (asset.glb, previews, manifest) at the end.
+    Steps sleep ``NEPF_FAKE_STEP_S``; a checkpoint (``checkpoints/latest.json``, the file the core
+    writes beside ``latest.pt``) every 5 steps; metrics.jsonl with train/sync/test records, cut
+    back to the checkpoint on resume as the core does (``nepf_core.resume``); export (asset.glb,
+    previews, manifest) at the end. Like the core, it first reports ``loading`` at step 0 and
+    then "loads" for ``NEPF_FAKE_LOAD_S`` seconds (default 0).
     """
     run, data_dir, callbacks, resume = Path(request.run_dir), request.data_dir, request.callbacks, request.resume
     (run / "checkpoints").mkdir(parents=True, exist_ok=True)
@@ -157,6 +161,10 @@ def fake_pipeline(request: JobRequest) -> dict:
     start = 0
     if resume and ck.exists():
         start = json.loads(ck.read_text())["step"]
+        drop_records_after(run / "metrics.jsonl", start)
+    if callbacks is not None:
+        callbacks.progress({"step": 0, "total": 0, "fraction": 0.0, "stage": "loading", "eta_s": None, "wall_s": 0.0})
+    time.sleep(float(os.environ.get("NEPF_FAKE_LOAD_S", "0")))
     assert Path(data_dir, "cameras.npz").exists() or any(Path(data_dir).iterdir())
     t0 = time.time()
     status = "succeeded"

@@ -9,13 +9,13 @@ import time
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import update
+from sqlalchemy import select, update
 
 from api.auth import create_token, make_ticket
 from api.main import create_app
 from api.settings import Settings
 from jobstore.engine import dispose_engines
-from jobstore.models import Job
+from jobstore.models import Job, Token
 from service_fixtures import dataset_zip_bytes
 
 
@@ -41,6 +41,11 @@ def env(tmp_path, monkeypatch):
     yield client, svc, job_id, alice, bob
     client.close()
     dispose_engines()
+
+
+def token_id(svc, owner: str) -> int:
+    with svc.Session() as s:
+        return s.execute(select(Token.id).where(Token.owner == owner)).scalar_one()
 
 
 def routes(job_id):
@@ -87,15 +92,34 @@ def test_sse_ticket_is_job_scoped_and_expires(env):
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/event-stream")
     assert "event: end" in r.text and "event: metrics" in r.text
     # a ticket for another job, a forged one, an expired one: 401
-    other = make_ticket(svc.secret, "alice", "f" * 32, 60)
+    other = make_ticket(svc.secret, "alice", "f" * 32, 60, token_id(svc, "alice"))
     assert client.get(f"/jobs/{job_id}/events?ticket={other}").status_code == 401
     forged = t["ticket"][:-2] + ("AA" if not t["ticket"].endswith("AA") else "BB")
     assert client.get(f"/jobs/{job_id}/events?ticket={forged}").status_code == 401
-    expired = make_ticket(svc.secret, "alice", job_id, -1)
+    expired = make_ticket(svc.secret, "alice", job_id, -1, token_id(svc, "alice"))
     assert client.get(f"/jobs/{job_id}/events?ticket={expired}").status_code == 401
     # bob's valid ticket for alice's job id: 404, like every other route
-    bobs = make_ticket(svc.secret, "bob", job_id, 60)
+    bobs = make_ticket(svc.secret, "bob", job_id, 60, token_id(svc, "bob"))
     assert client.get(f"/jobs/{job_id}/events?ticket={bobs}").status_code == 404
+    # a ticket naming bob's token for alice: the token must be the owner's own
+    mixed = make_ticket(svc.secret, "alice", job_id, 60, token_id(svc, "bob"))
+    assert client.get(f"/jobs/{job_id}/events?ticket={mixed}").status_code == 401
+
+
+def test_a_ticket_stops_working_once_its_token_is_revoked(env):
+    """Issue 37: a ticket minted with a token kept working for its 300 s after the token was
+    revoked. The stream checks, at connect time, that the token is still live."""
+    client, svc, job_id, alice, bob = env
+    with svc.Session() as s:
+        s.execute(update(Job).where(Job.id == job_id).values(status="succeeded"))
+        s.commit()
+    url = client.post(f"/jobs/{job_id}/events/ticket", headers={"Authorization": f"Bearer {alice}"}).json()["url"]
+    assert client.get(url).status_code == 200
+    with svc.Session() as s:
+        s.execute(update(Token).where(Token.owner == "alice").values(revoked=True))
+        s.commit()
+    r = client.get(url)
+    assert r.status_code == 401 and r.json()["code"] == "unauthorized", r.text
 
 
 def test_artifact_paths_cannot_escape_the_job_folder(env):
@@ -113,6 +137,26 @@ def test_artifact_paths_cannot_escape_the_job_folder(env):
     assert r.status_code == 200 and r.headers["content-type"] == "model/gltf-binary"
     r = client.get(f"/jobs/{job_id}/artifacts/metrics.jsonl", headers=a)
     assert r.headers["content-type"] == "application/x-ndjson"
+
+
+def test_links_into_checkpoints_are_not_served(env):
+    """Issue 37: the ``checkpoints/`` exclusion looked at the path as written, so a link inside
+    the run folder (``x.pt -> checkpoints/latest.pt``) served the checkpoint. The resolved path
+    is checked now: a link to a file or to the folder, relative or absolute, is a 404."""
+    client, svc, job_id, alice, bob = env
+    a = {"Authorization": f"Bearer {alice}"}
+    run = svc.settings.jobs_path / job_id / "run"
+    (run / "checkpoints").mkdir()
+    (run / "checkpoints" / "latest.pt").write_bytes(b"weights")
+    (run / "x.pt").symlink_to("checkpoints/latest.pt")
+    (run / "ck").symlink_to(run / "checkpoints")
+    (run / "previews").mkdir()
+    (run / "previews" / "y.pt").symlink_to("../checkpoints/latest.pt")
+    for p in ("x.pt", "ck/latest.pt", "previews/y.pt", "checkpoints/latest.pt"):
+        r = client.get(f"/jobs/{job_id}/artifacts/{p}", headers=a)
+        assert r.status_code == 404 and r.json()["code"] == "not_found", (p, r.status_code)
+    (run / "asset_link.glb").symlink_to("asset.glb")            # a link within the run folder still works
+    assert client.get(f"/jobs/{job_id}/artifacts/asset_link.glb", headers=a).status_code == 200
 
 
 def test_list_is_paginated_newest_first(env, tmp_path):

@@ -29,6 +29,10 @@ def test_static_mount_serves_viewer_and_keeps_api(tmp_path, monkeypatch):
         assert c.get("/healthz").json()["ok"] is True
         assert "/jobs/{job_id}" in c.get("/openapi.json").json()["paths"]
         assert c.get("/docs").status_code == 200
+        # issue 37: the viewer's 404s have the API's error shape, not {"detail": "Not Found"}
+        for path in ("/nope.js", "/assets/missing.css"):
+            r = c.get(path)
+            assert r.status_code == 404 and r.json() == {"detail": "Not Found", "code": "not_found", "errors": []}
     dispose_engines()
 
 

@@ -47,6 +47,60 @@ def test_resume_gives_the_same_losses_as_an_uninterrupted_run(small_scene, tmp_p
         assert la[s] == pytest.approx(lb[s], rel=1e-6, abs=1e-9), (s, la[s], lb[s])
 
 
+def test_a_resume_after_a_kill_lists_each_step_once(small_scene, tmp_path):
+    """Issue 37: a worker killed at step 5 with its checkpoint at 3 trains 4 and 5 again when it
+    resumes; metrics.jsonl listed them twice. The run is stopped at 5 and its checkpoint files put
+    back as they were at step 3 (what a kill -9 at 5 leaves); the resumed run cuts the log back to
+    the checkpoint, so steps 1..6 are listed once each, with the losses of an uninterrupted run."""
+    import shutil
+
+    from nepf_core.resume import checkpoint_step
+
+    a = tmp_path / "a"
+    fit(small_scene, a, _cfg(), device="cpu")
+    b = tmp_path / "b"
+    saved = tmp_path / "at_step_3"
+
+    def on_checkpoint(step, path):
+        if step == 3:
+            shutil.copytree(b / "checkpoints", saved)
+    calls = {"n": 0}
+
+    def should_stop():
+        calls["n"] += 1
+        return calls["n"] > 5
+    fit(small_scene, b, _cfg(), device="cpu", callbacks=FitCallbacks(should_stop=should_stop, on_checkpoint=on_checkpoint))
+    assert sorted(_losses(b)) == [1, 2, 3, 4, 5]
+    shutil.rmtree(b / "checkpoints")
+    shutil.copytree(saved, b / "checkpoints")            # the state a kill -9 at step 5 leaves
+    r = fit(small_scene, b, _cfg(), device="cpu", resume=True)
+    assert r.step == 6
+    steps = [json.loads(l)["step"] for l in (b / "metrics.jsonl").read_text().splitlines()]
+    assert steps == [1, 2, 3, 4, 5, 6], steps
+    la, lb = _losses(a), _losses(b)
+    for s in range(1, 7):
+        assert la[s] == pytest.approx(lb[s], rel=1e-6, abs=1e-9), (s, la[s], lb[s])
+    assert checkpoint_step(b) == 6
+
+
+def test_cut_metrics_to_checkpoint_without_or_with_a_stale_info_file(tmp_path):
+    """Without ``checkpoints/latest.json`` (an older run folder), or with one a checkpoint behind
+    (a kill between ``latest.pt`` and its info file), the records above the step go, a line cut
+    by the kill too; with a matching one, the file is cut to its recorded length."""
+    from nepf_core.resume import cut_metrics_to_checkpoint, write_checkpoint_info
+
+    log = tmp_path / "metrics.jsonl"
+    text = "".join(json.dumps(r) + "\n" for r in ({"step": 1}, {"step": 2}, {"step": 2, "kind": "sync"},
+                                                   {"note": "no step"}, {"step": 3}))
+    log.write_text(text + '{"step": 4, "lo')
+    assert cut_metrics_to_checkpoint(tmp_path, 2) == 2
+    assert [json.loads(l).get("step") for l in log.read_text().splitlines()] == [1, 2, 2, None]
+    write_checkpoint_info(tmp_path, 1, 0.5, metrics_bytes=len(json.dumps({"step": 1})) + 1)
+    assert cut_metrics_to_checkpoint(tmp_path, 2) == 0             # info names step 1, not 2: by step
+    assert cut_metrics_to_checkpoint(tmp_path, 1) > 0              # matching: cut to its length
+    assert log.read_text() == '{"step": 1}\n'
+
+
 def test_records_and_report(small_scene, tmp_path):
     cfg = _cfg(8)
     cfg.train.sync_every = 4

@@ -85,8 +85,8 @@ def test_python_multipart_floor_provides_the_module_the_api_imports():
 def test_every_import_is_a_declared_dependency():
     core = set(requirements(project()["dependencies"]))
     service = set(requirements(project()["optional-dependencies"]["service"]))
-    own = {"nepf_core", "api", "worker", "jobstore"}
-    for package, allowed in (("nepf_core", core), ("jobstore", service), ("api", core | service),
+    own = {"nepf_core", "nepf_json", "api", "worker", "jobstore"}
+    for package, allowed in (("nepf_core", core), ("nepf_json", set()), ("jobstore", service), ("api", core | service),
                              ("worker", core | service)):
         for module in imported_top_modules(package) - own:
             dists = distributions_of(module)
@@ -201,7 +201,7 @@ def test_bench_is_not_installed_nor_shipped_but_runs_from_the_repo():
 def test_wheel_ships_the_migrations_and_not_bench(tmp_path):
     """Built from a copy of the sources (setuptools writes build/ beside the sources)."""
     src = tmp_path / "src"
-    for name in ("nepf_core", "jobstore", "api", "worker", "bench", "tests"):
+    for name in ("nepf_core", "nepf_json", "jobstore", "api", "worker", "bench", "tests"):
         shutil.copytree(REPO / name, src / name, ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     for name in ("pyproject.toml", "README.md"):
         shutil.copy2(REPO / name, src / name)
@@ -213,5 +213,5 @@ def test_wheel_ships_the_migrations_and_not_bench(tmp_path):
     versions = sorted(p.name for p in (REPO / "jobstore/migrations/versions").glob("0*.py"))
     assert versions and {f"jobstore/migrations/versions/{v}" for v in versions} <= names
     assert {"jobstore/migrations/env.py", "jobstore/migrations/script.py.mako", "nepf_core/cli.py",
-            "api/main.py", "worker/tasks.py"} <= names
+            "nepf_json/__init__.py", "api/main.py", "worker/tasks.py"} <= names
     assert not any(n.startswith(("bench/", "tests/")) for n in names)

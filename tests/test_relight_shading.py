@@ -162,6 +162,15 @@ def test_malformed_lights_name_the_file_and_the_light(tmp_path):
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(LightsError, match="bad.json: not valid JSON"):
         load_lights(tmp_path / "bad.json")
+    # issue 37: the one bounded parser (nepf_json); the file and the limit are named
+    light = '{"type": "point", "position_world": [0, 0, 3], "intensity_rgb": [1, 1, 1]}'
+    for text, words in (('{"lights": [' + light + '], "x": ' + "[" * 2000 + "]" * 2000 + "}", ("nesting", "32")),
+                        ('{"lights": [], "lights": [' + light + "]}", ('"lights"', "twice")),
+                        ('{"lights": [' + light.replace("3]", "1" + "0" * 5000 + "]") + "]}", ("number", "100"))):
+        (tmp_path / "limits.json").write_text(text)
+        with pytest.raises(LightsError, match="^limits.json: ") as e:
+            load_lights(tmp_path / "limits.json")
+        assert all(w in str(e.value) for w in words), str(e.value)
 
 
 def test_canonical_lights_geometry():

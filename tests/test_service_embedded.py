@@ -60,26 +60,59 @@ def test_embedded_lifecycle_real_tiny_pipeline(tmp_path):
         api.stop()
 
 
-def test_embedded_worker_kill9_resumes(embedded, tmp_path):
+def test_embedded_worker_kill9_resumes(tmp_path):
     """kill -9 the embedded worker mid-job: `nepf serve` restarts it, the reconciler re-queues the job
-    once its lease expires, and the job resumes from its checkpoint and completes exactly once."""
+    once its lease expires, and the job resumes from its checkpoint and completes exactly once.
+
+    Issue 37: each step is listed once in the metrics (the records after the checkpoint are
+    dropped on resume), the resumed attempt's progress is `resuming` at the checkpoint's step and
+    never drops to the pipeline's `loading` step 0, and `first_step` is the checkpoint step + 1."""
+    data = tmp_path / "data"
+    # the fake "loads" for 1 s, as the core does, reporting step 0 meanwhile
+    api, base = start_api(service_env(data, NEPF_FAKE_STEP_S="0.04", NEPF_FAKE_LOAD_S="1", **FAST), tmp_path)
+    try:
+        h = {"Authorization": f"Bearer {local_token(data)}"}
+        _kill9_and_resume(base, h, data, api, tmp_path)
+    finally:
+        api.stop()
+
+
+def _kill9_and_resume(base, h, data, api, tmp_path):
     import os
     import signal
+    import time
 
-    base, h, data, api = embedded
     r = upload(base, h, dataset_zip_bytes(tmp_path), {"preset": "tiny", "iters": 120})
     jid = r.json()["id"]
-    wait_for(lambda: get_job(base, h, jid)["progress"]["step"] >= 30, 30, what="step 30")
+    wait_for(lambda: get_job(base, h, jid)["progress"]["step"] >= 32, 30, what="step 32")
     pid = int([ln for ln in api.output().splitlines() if "worker pid" in ln][-1].split()[-1])
     os.kill(pid, signal.SIGKILL)
     data_dir = data
     killed_at = max_metric_step(data_dir, jid)
-    final = wait_status(base, h, jid, ("succeeded", "failed"), 60)
+    seen = []                           # (attempts, step, stage) polled while the job resumes
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        job = get_job(base, h, jid)
+        seen.append((job["delivery"]["attempts"], job["progress"]["step"], job["progress"]["stage"]))
+        if job["status"] in ("succeeded", "failed"):
+            break
+        time.sleep(0.05)
+    final = wait_status(base, h, jid, ("succeeded", "failed"), 10)
     # the error and the delivery log first: pytest cuts a long dict, and CI once showed only "failed"
     assert final["status"] == "succeeded", (final.get("error"), final.get("delivery"), api.output()[-3000:])
     log = final["delivery"]["attempt_log"]
     assert final["delivery"]["attempts"] == 2 and len(log) == 2
     assert 1 < log[1]["first_step"] <= killed_at + 1, log       # resumed from a checkpoint, not from zero
+    resumed_from = log[1]["first_step"] - 1
+    assert resumed_from % 5 == 0, log                            # the fake checkpoints every 5 steps
     assert final["delivery"]["completions"] == 1
     done = (data / "jobs" / jid / "run" / "completions.log").read_text().splitlines()
     assert len(done) == 1 and done[0].split()[1:] == ["succeeded", "120"]
+    recs = httpx.get(f"{base}/jobs/{jid}/metrics", headers=h).json()["records"]
+    train_steps = [r["step"] for r in recs if "kind" not in r]
+    assert train_steps == list(range(1, 121)), [s for s in set(train_steps) if train_steps.count(s) > 1]
+    second = [(step, stage) for attempts, step, stage in seen if attempts == 2]
+    assert second and all(step >= resumed_from for step, _ in second), second     # never back to 0
+    steps = [step for step, _ in second]
+    assert steps == sorted(steps), second                                        # never backwards
+    assert ("resuming" in {stage for _, stage in second}), second                # seen during the 1 s load

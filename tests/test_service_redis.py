@@ -145,6 +145,11 @@ def test_kill9_real_pipeline_resumes_from_checkpoint(stack, worker):
     log = final["delivery"]["attempt_log"]
     assert final["delivery"]["attempts"] == 2 and len(log) == 2, log
     assert 1 < log[1]["first_step"] <= iters, log            # resumed from a checkpoint, not from 1
+    assert log[1]["first_step"] % 2 == 1, log                # checkpoint step (every 2) + 1, issue 37
     assert final["progress"]["step"] == iters and final["delivery"]["completions"] == 1
+    # issue 37: the steps trained again after the checkpoint are listed once (tiny logs every 5th)
+    recs = httpx.get(f"{base}/jobs/{jid}/metrics", headers=h).json()["records"]
+    train = [r["step"] for r in recs if r.get("kind") == "train"]
+    assert train == list(range(5, iters + 1, 5)), [s for s in set(train) if train.count(s) > 1]
     arts = httpx.get(f"{base}/jobs/{jid}/artifacts", headers=h).json()
     assert any(a["path"].endswith(".glb") for a in arts["artifacts"])

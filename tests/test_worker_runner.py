@@ -146,7 +146,9 @@ def test_pipeline_gets_one_request_from_job_config_and_settings(store):
     assert req.callbacks.stop_requested() is False
     j = get(Session, jid)
     assert j.step == 12 and j.wall_s == 1.5 and j.result["status"] == "succeeded"
-    assert j.attempt_log[-1]["first_step"] == 3
+    # the first step this attempt trained: 1 on a fresh start, whichever step it reported first
+    # (issue 37: it was the first step reported, which after a resume was the checkpoint's step)
+    assert j.attempt_log[-1]["first_step"] == 1
 
 
 def test_pipeline_setting_names_the_function(store, monkeypatch):
@@ -225,3 +227,38 @@ def test_lease_lost_mid_run_stops_without_result(store):
     j = get(Session, jid)
     assert j.status == "running" and j.lease_owner == "B" and j.completions == 0
     assert not (settings.jobs_path / jid / "run" / "asset.glb").exists()     # no export into B's folder
+
+
+def test_a_resumed_attempt_shows_resuming_at_the_checkpoint_and_first_step_after_it(store):
+    """Issue 37: the resumed attempt's progress stands at the checkpoint's step with stage
+    ``resuming`` from the claim on; the pipeline's ``loading`` report at step 0 (the core reloads
+    its data) does not pull it back to 0; ``first_step`` is the checkpoint step + 1 (it was the
+    checkpoint step: the core reports that step once before it trains the next)."""
+    from nepf_core.resume import write_checkpoint_info
+
+    settings, Session = store
+    jid = new_job(settings, Session)
+    with Session() as s:   # what the killed attempt left: step 130 of 260, a checkpoint at 100
+        s.execute(update(Job).where(Job.id == jid).values(step=130, total=260, stage="requeued", attempts=1))
+        s.commit()
+    run_dir = settings.jobs_path / jid / "run"
+    write_checkpoint_info(run_dir, 100, 40.0)
+    (run_dir / "checkpoints" / "latest.pt").write_bytes(b"stand-in")
+    seen = []
+
+    def core_like(request):
+        cb = request.callbacks
+        seen.append((get(Session, jid).step, get(Session, jid).stage))          # right after the claim
+        cb.progress({"step": 0, "total": 0, "fraction": 0.0, "stage": "loading", "eta_s": None, "wall_s": 0.0})
+        time.sleep(0.3)                                                         # three heartbeats
+        seen.append((get(Session, jid).step, get(Session, jid).stage))
+        for step in (100, 101, 102):                                           # the core's first reports
+            cb.progress({"step": step, "total": 260, "fraction": step / 260, "stage": "training",
+                         "eta_s": 1.0, "wall_s": 40.0})
+        time.sleep(0.3)
+        return {"status": "succeeded", "step": 260, "total": 260, "wall_s": 50.0}
+
+    assert JobRunner(settings, Session, jid, "B", pipeline=core_like).run() == "succeeded"
+    assert seen[0] == (100, "resuming") and seen[1] == (100, "resuming"), seen
+    job = get(Session, jid)
+    assert job.attempt_log[-1]["first_step"] == 101, job.attempt_log

@@ -35,6 +35,7 @@ from sqlalchemy.orm import sessionmaker
 
 from jobstore.models import Job, utcnow
 from api.settings import Settings
+from nepf_core.resume import checkpoint_step
 
 log = logging.getLogger("nepf.worker")
 
@@ -86,6 +87,10 @@ class JobRunner:
         self._progress: Optional[dict] = None
         self._progress_dirty = False
         self._first_step: Optional[int] = None
+        # the step of the checkpoint this attempt resumes from (0: a fresh start), and the total
+        # last reported: progress below it is shown as "resuming" at that step (never 0)
+        self._resume_step = 0
+        self._total: Optional[int] = None
         self._first_step_written = False
         self._report_mtime: Optional[float] = None
         self._cancel = False
@@ -101,8 +106,14 @@ class JobRunner:
         return utcnow() + dt.timedelta(seconds=self.settings.lease_s)
 
     def claim(self) -> str:
-        """'claimed' | 'finished' | 'held' | 'cancelled' | 'missing' | 'gave_up'."""
+        """'claimed' | 'finished' | 'held' | 'cancelled' | 'missing' | 'gave_up'.
+
+        A job with a checkpoint in its run folder is claimed as ``stage: "resuming"`` at the
+        checkpoint's step: the steps trained after it died with the last worker and are trained
+        again, so that is where the progress stands (and ``metrics.jsonl`` is cut back to it)."""
         now = utcnow()
+        self._resume_step = checkpoint_step(self.run_dir) or 0
+        start = {"stage": "resuming", "step": self._resume_step} if self._resume_step else {"stage": "starting"}
         with self.Session() as s:
             res = s.execute(
                 update(Job)
@@ -110,7 +121,7 @@ class JobRunner:
                        Job.cancel_requested == False,  # noqa: E712
                        (Job.lease_owner.is_(None)) | (Job.lease_expires < now))
                 .values(status="running", lease_owner=self.worker_id, lease_expires=self._lease_until(),
-                        attempts=Job.attempts + 1, stage="starting", error=None)
+                        attempts=Job.attempts + 1, error=None, **start)
             )
             s.commit()
             job = s.get(Job, self.job_id)
@@ -128,6 +139,9 @@ class JobRunner:
                 return "held"
             log_entry = {"worker": self.worker_id, "claimed_at": now.isoformat() + "Z", "first_step": None}
             values: dict[str, Any] = {"attempt_log": list(job.attempt_log or []) + [log_entry]}
+            self._total = job.total or None
+            if self._resume_step and self._total:
+                values["fraction"] = min(1.0, self._resume_step / self._total)
             if job.started_at is None:
                 values["started_at"] = now
             if job.attempts > self.settings.max_deliveries:
@@ -197,12 +211,26 @@ class JobRunner:
     def on_progress(self, info: dict) -> None:
         if info.get("stage") == "exporting" and self._shutdown.is_set() and not self._cancel:
             raise ShutdownRequested(f"job {self.job_id}: worker shutting down before the export")
+        info = self._not_below_checkpoint(info)
         with self._lock:
-            self._progress = dict(info)
+            self._progress = info
             self._progress_dirty = True
-            # the first training step this attempt reports (1 on a fresh start, > 1 after a resume)
-            if self._first_step is None and int(info.get("step") or 0) >= 1:
-                self._first_step = int(info["step"])
+            # the first step this attempt trained: 1 on a fresh start, checkpoint step + 1 after a
+            # resume (steps are trained in order, so any report past the checkpoint means it did)
+            if self._first_step is None and int(info.get("step") or 0) > self._resume_step:
+                self._first_step = self._resume_step + 1
+
+    def _not_below_checkpoint(self, info: dict) -> dict:
+        """``info`` as the job store keeps it: a report below the resumed checkpoint's step (the
+        pipeline's ``loading`` at step 0 while it reloads the data) becomes ``resuming`` at that
+        step, so the progress never drops under the point the run resumes from."""
+        info = dict(info)
+        if isinstance(info.get("total"), int) and info["total"] > 0:
+            self._total = info["total"]
+        if self._resume_step and int(info.get("step") or 0) < self._resume_step:
+            info.update(step=self._resume_step, stage="resuming", eta_s=None, total=self._total or info.get("total"),
+                        fraction=min(1.0, self._resume_step / self._total) if self._total else info.get("fraction"))
+        return info
 
     def should_stop(self) -> bool:
         if self._lease_lost:

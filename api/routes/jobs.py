@@ -6,7 +6,6 @@ import asyncio
 import datetime as dt
 import json
 import logging
-import mimetypes
 import os
 import re
 import shutil
@@ -23,6 +22,7 @@ from sqlalchemy.exc import IntegrityError
 from jobstore.models import ACTIVE, TERMINAL, Job, new_id, utcnow
 from jobstore.queue import enqueue
 
+from ..artifacts import ARTIFACT_MEDIA_TYPES, CONTENT_TYPES, content_type_for, safe_artifact_path  # noqa: F401
 from ..auth import check_ticket, make_ticket
 from ..deps import CredsDep, OwnerDep, ServiceDep, owner_from_header
 from ..downloads import content_disposition
@@ -39,23 +39,6 @@ JOB_ID = re.compile(r"^[0-9a-f]{32}$")
 
 ERRORS = {401: {"model": ErrorBody, "description": "Missing or invalid token"},
           404: {"model": ErrorBody, "description": "No such job for this owner"}}
-
-CONTENT_TYPES = {".glb": "model/gltf-binary", ".gltf": "model/gltf+json", ".ply": "application/octet-stream",
-                 ".obj": "model/obj", ".mtl": "model/mtl", ".png": "image/png", ".jpg": "image/jpeg",
-                 ".jpeg": "image/jpeg", ".json": "application/json", ".jsonl": "application/x-ndjson",
-                 ".exr": "image/x-exr", ".npz": "application/octet-stream", ".npy": "application/octet-stream",
-                 ".txt": "text/plain; charset=utf-8", ".csv": "text/csv; charset=utf-8",
-                 ".mp4": "video/mp4", ".html": "text/html; charset=utf-8", ".pt": "application/octet-stream"}
-
-
-#: every media type the artifact route serves (declared in its OpenAPI 200 response)
-ARTIFACT_MEDIA_TYPES = sorted({t.split(";")[0] for t in CONTENT_TYPES.values()})
-
-
-def content_type_for(path: str) -> str:
-    ext = os.path.splitext(path)[1].lower()
-    return CONTENT_TYPES.get(ext) or mimetypes.guess_type(path)[0] or "application/octet-stream"
-
 
 def _utc(d):
     """The DB stores naive UTC; the API says so explicitly."""
@@ -258,9 +241,12 @@ def get_metrics(job_id: str, svc: ServiceDep, owner: OwnerDep,
 # ------------------------------------------------------------------------------- events (SSE)
 @router.post("/jobs/{job_id}/events/ticket", response_model=Ticket, responses=ERRORS,
              summary="A short-lived signed ticket for EventSource (which cannot send headers)")
-def events_ticket(job_id: str, svc: ServiceDep, owner: OwnerDep):
+def events_ticket(job_id: str, svc: ServiceDep, owner: OwnerDep, creds: CredsDep):
     job = _load(svc, owner, job_id)
-    t = make_ticket(svc.secret, owner, job.id, svc.settings.ticket_ttl_s)
+    token_id = svc.verifier.token_id(creds.credentials) if creds is not None else None
+    if token_id is None:   # revoked between the (cached) check of the route and now
+        raise ApiError(401, "unauthorized", "missing or invalid bearer token", headers={"WWW-Authenticate": "Bearer"})
+    t = make_ticket(svc.secret, owner, job.id, svc.settings.ticket_ttl_s, token_id)
     return Ticket(ticket=t, expires_in=svc.settings.ticket_ttl_s, url=f"/jobs/{job.id}/events?ticket={t}")
 
 
@@ -279,7 +265,10 @@ async def job_events(job_id: str, request: Request, svc: ServiceDep, creds: Cred
                      last_event_id: Annotated[Optional[str], Header(alias="Last-Event-ID")] = None):
     owner = owner_from_header(svc, creds)
     if owner is None and ticket:
-        owner = check_ticket(svc.secret, ticket, job_id)
+        claims = check_ticket(svc.secret, ticket, job_id)
+        # the token the ticket was minted with must still be live now, at connect time
+        if claims is not None and await run_in_threadpool(svc.verifier.token_is_live, claims[1], claims[0]):
+            owner = claims[0]
     if owner is None:
         raise ApiError(401, "unauthorized", "missing or invalid bearer token or ticket",
                        headers={"WWW-Authenticate": "Bearer"})
@@ -353,23 +342,6 @@ def list_artifacts(job_id: str, svc: ServiceDep, owner: OwnerDep):
     frame = (man or {}).get("frame")
     return ArtifactList(artifacts=items, manifest=man is not None, status=job.status,
                         frame=frame if isinstance(frame, dict) else None)
-
-
-def safe_artifact_path(base: Path, rel: str) -> Optional[Path]:
-    """``base/rel`` if it is a regular file inside ``base`` (after resolving links); else None."""
-    if not rel or "\x00" in rel or rel.startswith(("/", "\\")) or "\\" in rel:
-        return None
-    parts = rel.split("/")
-    if any(p in ("", ".", "..") for p in parts) or parts[0] == "checkpoints":
-        return None
-    try:
-        root = base.resolve(strict=True)
-        target = (base / rel).resolve(strict=True)
-    except (OSError, RuntimeError, ValueError):
-        return None
-    if root not in target.parents or not target.is_file():
-        return None
-    return target
 
 
 @router.get("/jobs/{job_id}/artifacts/{path:path}", responses={**ERRORS, 200: {

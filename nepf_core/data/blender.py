@@ -27,7 +27,7 @@ when the images are RGBA, else the frustum rule.
 
 from __future__ import annotations
 
-import json
+import dataclasses
 import math
 from pathlib import Path
 
@@ -43,6 +43,7 @@ from nepf_core.data.normalize import (Normalization, c2w_to_normalized, check_c2
 from nepf_core.data.paths import dataset_path, existing_file, rel
 from nepf_core.data.scene import Scene
 from nepf_core.data.views import ViewSpec, load_view_pixels
+from nepf_json import DEFAULT_LIMITS, JsonInputError, load_file
 
 SPLITS = ("train", "test", "val")
 #: Long side of the masks used to estimate the normalisation.
@@ -59,17 +60,22 @@ def is_blender(root: Path) -> bool:
     return any(existing_file(root, split_file(root, s).name) is not None for s in SPLITS)
 
 
+#: limits on a ``transforms*.json`` (docs/SERVICE.md, "Limits"): the parser's defaults and at most
+#: 32 MiB, some 50,000 frames (a frame takes ~600 bytes)
+TRANSFORMS_JSON_LIMITS = dataclasses.replace(DEFAULT_LIMITS, max_bytes=32 * 1024 * 1024)
+
+
 def read_json(path: Path, root: Path) -> dict:
-    """Parse a JSON object; ``bad_json`` (naming the file and the line) on failure."""
+    """Parse a JSON object with :mod:`nepf_json` (nesting, number and string length bounded,
+    duplicate keys refused, at most :data:`TRANSFORMS_JSON_LIMITS` ``max_bytes``); ``bad_json``
+    naming the file, the line and the limit on failure."""
     label = rel(path, root)
     try:
-        with open(path, encoding="utf-8-sig") as f:
-            meta = json.load(f)
-    except json.JSONDecodeError as e:
-        raise DatasetError(f"invalid JSON at line {e.lineno}, column {e.colno}: {e.msg}", file=label,
-                           code="bad_json") from None
-    except (OSError, UnicodeDecodeError) as e:
-        why = e.strerror if isinstance(e, OSError) and e.filename else e  # never the server path
+        meta = load_file(path, source=label, limits=TRANSFORMS_JSON_LIMITS)
+    except JsonInputError as e:
+        raise DatasetError(str(e).removeprefix(f"{label}: "), file=label, code="bad_json") from None
+    except OSError as e:
+        why = e.strerror if e.filename else e  # never the server path
         raise DatasetError(f"cannot read JSON file: {why}", file=label, code="bad_json") from None
     if not isinstance(meta, dict):
         raise DatasetError("the JSON file must hold an object with a 'frames' list", file=label,

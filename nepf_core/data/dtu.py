@@ -5,6 +5,9 @@ Layout (IDR, NeuS):
         * ``world_mat_i`` ``[4, 4]`` or ``[3, 4]``: ``K [R | t]``, world -> pixels (OpenCV,
           pixel centres at integer coordinates);
         * ``scale_mat_i`` ``[4, 4]`` (optional): normalised unit sphere -> world.
+    Only these members are read, one at a time, each ``.npy`` header (real dtype, one of these
+    shapes, a bounded size) checked before its data (``npz.py``): other members are never
+    decompressed.
     ``image/`` (or ``images/``): PNG/JPEG sorted by name; the i-th file is view ``i``.
     ``mask/`` (or ``masks/``, optional): same count, any mode; converted to luma and
     thresholded at 127, so 3-channel soft-edged DTU masks work.
@@ -24,7 +27,6 @@ and ``Scene.extras["normalization"]`` says which rule was used.
 from __future__ import annotations
 
 import re
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +37,7 @@ from nepf_core.data.errors import DatasetError
 from nepf_core.data.images import list_images
 from nepf_core.data.normalize import (c2w_to_normalized, check_intrinsics,
                                       normalization_from_cameras)
+from nepf_core.data.npz import NpzArrays
 from nepf_core.data.paths import existing_dir, existing_file, rel
 from nepf_core.data.scene import Scene
 from nepf_core.data.views import ViewSpec, load_view_pixels
@@ -102,29 +105,22 @@ def decompose_projection(P: np.ndarray, *, label: str | None = None, view: int |
     return K, c2w
 
 
-def read_camera_npz(path: Path, root: Path) -> dict[str, np.ndarray]:
-    """Load the npz as a dict (``unreadable_cameras`` on failure).
+#: the shapes a DTU camera member may declare (checked from its .npy header, before its data)
+MATRIX_SHAPES = {"world_mat": ((4, 4), (3, 4)), "scale_mat": ((4, 4),)}
 
-    An ``.npz`` is a zip of ``.npy`` arrays: anything else (a stray ``.npy``, a pickle, junk)
-    is reported as "not a valid .npz", never as pickled data; pickled arrays inside a real
-    npz are refused (``allow_pickle=False``)."""
-    label = rel(path, root)
-    try:
-        with open(path, "rb") as f:
-            magic = f.read(4)
-    except OSError as e:
-        raise DatasetError(f"cannot read camera file: {e.strerror}", file=label,
-                           code="unreadable_cameras") from None
-    # numpy.load treats any file that is not a zip or .npy as a pickle: test the zip magic first
-    if magic not in (b"PK\x03\x04", b"PK\x05\x06") or not zipfile.is_zipfile(path):
-        raise DatasetError("not a valid .npz file (expected a zip of .npy arrays, as numpy.savez writes)",
-                           file=label, code="unreadable_cameras")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return {k: np.asarray(z[k]) for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as e:
-        why = e.strerror if isinstance(e, OSError) and e.filename else e  # never the server path
-        raise DatasetError(f"cannot read camera file: {why}", file=label, code="unreadable_cameras") from None
+
+def open_camera_npz(path: Path, root: Path) -> NpzArrays:
+    """The camera file, opened for member-by-member reading (``nepf_core/data/npz.py``): a file
+    that is not a zip of ``.npy`` arrays is ``unreadable_cameras`` ("not a valid .npz"), never
+    read as a pickle; only the ``world_mat_i`` / ``scale_mat_i`` members are ever read."""
+    return NpzArrays(path, rel(path, root))
+
+
+def read_matrix(cams: NpzArrays, key: str, view: int) -> np.ndarray:
+    """Member ``key`` (``world_mat_i`` or ``scale_mat_i``) as a float64 ``[4, 4]``: its header
+    checked first (real dtype, ``[4, 4]`` or ``[3, 4]``), then its entries (finite)."""
+    kind = key.rsplit("_", 1)[0]
+    return _as_4x4(cams.read(key, MATRIX_SHAPES[kind], view=view), key, cams.label, view)
 
 
 def _as_4x4(m: np.ndarray, key: str, label: str, view: int) -> np.ndarray:
@@ -140,24 +136,28 @@ def _as_4x4(m: np.ndarray, key: str, label: str, view: int) -> np.ndarray:
     return m
 
 
-def parse_dtu(root: Path | str) -> tuple[list[ViewSpec], np.ndarray | None, dict]:
-    """Read the cameras and file lists (no pixels).
+def _shared_scale(cams: NpzArrays, idx: list[int]) -> np.ndarray | None:
+    """``scale_mat_0`` when every view has one and they all agree; None when none has one."""
+    has_scale = [f"scale_mat_{i}" in cams for i in idx]
+    if any(has_scale) and not all(has_scale):
+        v = has_scale.index(False)
+        raise DatasetError(f"scale_mat_{v} is missing while other views have one", file=cams.label,
+                           view=v, code="count_mismatch")
+    if not all(has_scale) or not idx:
+        return None
+    scale = read_matrix(cams, "scale_mat_0", 0)
+    for i in idx:
+        si = read_matrix(cams, f"scale_mat_{i}", i)
+        if not np.allclose(si, scale, rtol=1e-6, atol=1e-9 * max(1.0, np.abs(scale).max())):
+            raise DatasetError(f"scale_mat_{i} differs from scale_mat_0; the views would not share "
+                               "one normalised frame", file=cams.label, view=i, code="invalid_camera")
+    if abs(np.linalg.det(scale[:3, :3])) < 1e-12:
+        raise DatasetError("scale_mat is singular", file=cams.label, view=0, code="singular_camera")
+    return scale
 
-    Returns ``(specs, world_from_norm or None, info)``: ``specs[i].c2w`` is in the normalised
-    frame when ``scale_mat`` exists (``world_from_norm = scale_mat_0``), else in world.
-    Raises ``DatasetError`` for missing files, count mismatches and bad matrices.
-    """
-    root = Path(root)
-    cam_path = find_camera_file(root)
-    if cam_path is None:
-        raise DatasetError(f"no {' or '.join(CAMERA_FILES)} in the DTU folder", file=".",
-                           code="unknown_layout")
-    img_dir = find_dir(root, IMAGE_DIRS)
-    if img_dir is None:
-        raise DatasetError("no image/ folder next to the camera file", file=".", code="unknown_layout")
-    cam_label = rel(cam_path, root)
-    cams = read_camera_npz(cam_path, root)
-    idx = sorted(int(m.group(1)) for k in cams if (m := re.fullmatch(r"world_mat_(\d+)", k)))
+
+def _view_files(root: Path, img_dir: Path, idx: list[int], cam_label: str) -> tuple[list, list | None]:
+    """``(images, masks or None)``, checked against the camera indices ``idx``."""
     images = list_images(img_dir, root)
     if not images:
         raise DatasetError("the image folder holds no PNG/JPEG image", file=rel(img_dir, root),
@@ -171,42 +171,50 @@ def parse_dtu(root: Path | str) -> tuple[list[ViewSpec], np.ndarray | None, dict
                            f"(world_mat_i) in {cam_label}", file=cam_label,
                            view=min(len(idx), len(images)), code="count_mismatch")
     mask_dir = find_dir(root, MASK_DIRS)
-    masks = None
-    if mask_dir is not None:
-        masks = list_images(mask_dir, root)
-        if len(masks) != len(images):
-            raise DatasetError(f"{len(masks)} masks in {rel(mask_dir, root)}/ but {len(images)} images",
-                               file=rel(mask_dir, root), view=min(len(masks), len(images)),
-                               code="count_mismatch")
-    has_scale = [f"scale_mat_{i}" in cams for i in idx]
-    if any(has_scale) and not all(has_scale):
-        v = has_scale.index(False)
-        raise DatasetError(f"scale_mat_{v} is missing while other views have one", file=cam_label,
-                           view=v, code="count_mismatch")
-    scale = None
-    if all(has_scale):
-        scale = _as_4x4(cams["scale_mat_0"], "scale_mat_0", cam_label, 0)
+    if mask_dir is None:
+        return images, None
+    masks = list_images(mask_dir, root)
+    if len(masks) != len(images):
+        raise DatasetError(f"{len(masks)} masks in {rel(mask_dir, root)}/ but {len(images)} images",
+                           file=rel(mask_dir, root), view=min(len(masks), len(images)), code="count_mismatch")
+    return images, masks
+
+
+def parse_dtu(root: Path | str) -> tuple[list[ViewSpec], np.ndarray | None, dict]:
+    """Read the cameras and file lists (no pixels).
+
+    Returns ``(specs, world_from_norm or None, info)``: ``specs[i].c2w`` is in the normalised
+    frame when ``scale_mat`` exists (``world_from_norm = scale_mat_0``), else in world.
+    Raises ``DatasetError`` for missing files, count mismatches and bad matrices. Only the
+    ``world_mat_i`` / ``scale_mat_i`` members of the camera file are read, each header first
+    (``npz.py``).
+    """
+    root = Path(root)
+    cam_path = find_camera_file(root)
+    if cam_path is None:
+        raise DatasetError(f"no {' or '.join(CAMERA_FILES)} in the DTU folder", file=".",
+                           code="unknown_layout")
+    img_dir = find_dir(root, IMAGE_DIRS)
+    if img_dir is None:
+        raise DatasetError("no image/ folder next to the camera file", file=".", code="unknown_layout")
+    with open_camera_npz(cam_path, root) as cams:
+        idx = sorted(int(m.group(1)) for k in cams.names if (m := re.fullmatch(r"world_mat_(\d+)", k)))
+        images, masks = _view_files(root, img_dir, idx, cams.label)
+        scale = _shared_scale(cams, idx)
+        specs = []
         for i in idx:
-            si = _as_4x4(cams[f"scale_mat_{i}"], f"scale_mat_{i}", cam_label, i)
-            if not np.allclose(si, scale, rtol=1e-6, atol=1e-9 * max(1.0, np.abs(scale).max())):
-                raise DatasetError(f"scale_mat_{i} differs from scale_mat_0; the views would not share "
-                                   "one normalised frame", file=cam_label, view=i, code="invalid_camera")
-        if abs(np.linalg.det(scale[:3, :3])) < 1e-12:
-            raise DatasetError("scale_mat is singular", file=cam_label, view=0, code="singular_camera")
-    specs = []
-    for i in idx:
-        W = _as_4x4(cams[f"world_mat_{i}"], f"world_mat_{i}", cam_label, i)
-        P = (W @ scale if scale is not None else W)[:3, :4]
-        K, c2w = decompose_projection(P, label=cam_label, view=i)
-        K = K.copy()
-        K[0, 2] += 0.5
-        K[1, 2] += 0.5
-        check_intrinsics(K, label=cam_label, view=i)
-        specs.append(ViewSpec(
-            image=images[i], label=rel(images[i], root), K=K, c2w=c2w,
-            mask=None if masks is None else masks[i],
-            mask_label=None if masks is None else rel(masks[i], root)))
-    info = {"camera_file": cam_label, "has_scale_mat": scale is not None}
+            W = read_matrix(cams, f"world_mat_{i}", i)
+            P = (W @ scale if scale is not None else W)[:3, :4]
+            K, c2w = decompose_projection(P, label=cams.label, view=i)
+            K = K.copy()
+            K[0, 2] += 0.5
+            K[1, 2] += 0.5
+            check_intrinsics(K, label=cams.label, view=i)
+            specs.append(ViewSpec(
+                image=images[i], label=rel(images[i], root), K=K, c2w=c2w,
+                mask=None if masks is None else masks[i],
+                mask_label=None if masks is None else rel(masks[i], root)))
+    info = {"camera_file": cams.label, "has_scale_mat": scale is not None}
     return specs, scale, info
 
 

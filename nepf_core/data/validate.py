@@ -8,7 +8,8 @@ JSON line and exits 0 when the dataset loads::
      "splits": {"train": 49}, "total_pixels": 94080000, "root": "sub/folder",
      "holdout_default_every": 8, "holdout_max_every": 24}
 
-or exits 2 with ``{"ok": false, "errors": [DatasetError.to_dict(), ...]}``.
+or exits 2 with ``{"ok": false, "errors": [DatasetError.to_dict(), ...]}`` (malformed input, each
+error with its own code), or 3 on a bug (``internal_error``, the traceback on stderr only).
 
 Everything a loader would reject is checked: the layout, the metadata, every camera, that
 every referenced file lies inside the folder (``paths.py``), the decoded-pixel budget of
@@ -27,11 +28,15 @@ import argparse
 import json
 import os
 import sys
+import traceback
 from pathlib import Path
 
 from nepf_core.data.errors import DatasetError
 
 MAX_ERRORS = 20
+#: exit status of a validator bug (2: the dataset is invalid); the API answers it with a 500
+EXIT_INTERNAL_ERROR = 3
+INTERNAL_ERROR_MESSAGE = "the dataset validator failed on an internal error (logged on the server)"
 
 
 def _split_specs(fmt: str, folder: Path) -> dict[str, list]:
@@ -115,7 +120,7 @@ def scrub_paths(result: dict, root: str | Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """CLI: print the JSON result of :func:`validate_dataset`; exit 0 (ok) or 2 (invalid)."""
+    """CLI: print the JSON result of :func:`validate_dataset`; exit 0 (ok), 2 (invalid) or 3 (a bug)."""
     ap = argparse.ArgumentParser(prog="python -m nepf_core.data.validate")
     ap.add_argument("dir")
     ap.add_argument("--max-side", type=int, default=0, help="working resolution (0: full size)")
@@ -126,9 +131,14 @@ def main(argv: list[str] | None = None) -> int:
         return 64
     try:
         result = validate_dataset(a.dir, max_side=a.max_side, max_total_pixels=a.max_total_pixels)
-    except Exception as e:  # a bug must still answer in JSON, never with a traceback
-        result = {"ok": False, "errors": [{"code": "internal_error", "message": f"{type(e).__name__}: {e}",
-                                           "file": None, "view": None}]}
+    except MemoryError:   # under the API's address-space cap (NEPF_VALIDATE_MAX_MEMORY_MB)
+        result = {"ok": False, "errors": [{"code": "dataset_too_large", "file": None, "view": None,
+                                           "message": "validating the dataset needed more memory than allowed"}]}
+    except Exception:  # noqa: BLE001 - a bug: the traceback to stderr (the server's log), no Python text in the answer
+        traceback.print_exc(file=sys.stderr)
+        print(json.dumps({"ok": False, "errors": [{"code": "internal_error", "file": None, "view": None,
+                                                   "message": INTERNAL_ERROR_MESSAGE}]}))
+        return EXIT_INTERNAL_ERROR
     print(json.dumps(scrub_paths(result, a.dir)))
     return 0 if result["ok"] else 2
 

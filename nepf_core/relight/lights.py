@@ -16,13 +16,14 @@ Change of frame. With ``x_world = M [x_norm, 1]`` and ``M = [s R | t]`` a simila
 
 from __future__ import annotations
 
-import json
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from nepf_json import DEFAULT_LIMITS, JsonInputError, load_file
 from nepf_core.up_axis import axis_from_vector, axis_vector, gltf_from_world
 
 
@@ -85,16 +86,21 @@ def parse_lights(data, source: str = "lights.json") -> PointLights:
     return PointLights(np.stack(pos), np.stack(inten))
 
 
+#: a lights file holds a few lights: 1 MiB is thousands of them
+LIGHTS_JSON_LIMITS = dataclasses.replace(DEFAULT_LIMITS, max_bytes=1024 * 1024)
+
+
 def load_lights(path) -> PointLights:
     """Read and validate a ``lights.json`` file (world frame). Errors name the file by its name
     only (never a server path)."""
     path = Path(path)
     if not path.is_file():
         raise LightsError(f"{path.name}: no such lights file")
-    try:
-        data = json.loads(path.read_text())
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise LightsError(f"{path.name}: not valid JSON ({e})") from None
+    try:   # the parser every user JSON goes through: bounded nesting, numbers, strings; no duplicate keys
+        data = load_file(path, source=path.name, limits=LIGHTS_JSON_LIMITS)
+    except JsonInputError as e:
+        what = e.reason if e.limit else f"not valid JSON ({e.reason})"
+        raise LightsError(f"{path.name}: {what}") from None
     return parse_lights(data, path.name)
 
 

@@ -34,6 +34,7 @@ from nepf_core.model import NePFModel
 from nepf_core.rays import PixelSampler
 from nepf_core.render.renderer import render_background_only, render_rays
 from nepf_core.reframe import reframe_scene
+from nepf_core.resume import cut_metrics_to_checkpoint, write_checkpoint_info
 from nepf_core.train.adaptivity import Adaptivity
 from nepf_core.train.clock import TrainClock
 from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
@@ -124,6 +125,8 @@ class TrainingRun:
         self.latest = self.dir / "checkpoints" / "latest.pt"
         if resume and self.latest.exists():
             wall_before = self._restore()
+            # the steps after the checkpoint are trained again: their old records go (resume.py)
+            cut_metrics_to_checkpoint(self.dir, self.step)
         elif not resume:
             (self.dir / "metrics.jsonl").unlink(missing_ok=True)
         self.mlog = MetricsLog(self.dir / "metrics.jsonl", self.callbacks)
@@ -330,6 +333,7 @@ class TrainingRun:
                       generator=self.gen, extra=extra)
             save_checkpoint(self.dir / "checkpoints" / f"ckpt_{self.step:07d}.pt", **kw)
             save_checkpoint(self.latest, **kw)
+            write_checkpoint_info(self.dir, self.step, kw["wall_s"], self.mlog.size())   # after latest.pt
             prune_checkpoints(self.dir / "checkpoints", self.cfg.train.keep_checkpoints)
             self.callbacks.checkpoint(self.step, str(self.latest))
             for h in self.hooks:

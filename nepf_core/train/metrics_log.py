@@ -31,6 +31,10 @@ class MetricsLog:
         self.f.flush()
         self.cb.metrics(clean)
 
+    def size(self) -> int:
+        """Bytes of the file so far (every record is flushed): where a resume cuts it back to."""
+        return self.f.tell()
+
     def close(self) -> None:
         self.f.close()
 
