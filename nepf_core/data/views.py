@@ -34,7 +34,7 @@ class ViewSpec:
         mask: separate mask file (DTU) or None.
         mask_label: ``mask`` relative to the root.
         expected_wh: ``(W, H)`` declared by the metadata (JSON ``w``/``h``), checked when set.
-        distortion: OpenCV ``(k1, k2, p1, p2, k3)`` to undo while reading, or None.
+        distortion: OpenCV ``(k1, k2, p1, p2[, k3[, k4]])`` to undo while reading, or None.
     """
 
     image: Path
@@ -44,7 +44,7 @@ class ViewSpec:
     mask: Path | None = None
     mask_label: str | None = None
     expected_wh: tuple[int, int] | None = None
-    distortion: tuple[float, float, float, float, float] | None = None
+    distortion: tuple[float, ...] | None = None
 
 
 Undistorter = Callable[[np.ndarray, np.ndarray, tuple], np.ndarray]
