@@ -229,7 +229,8 @@ def frame_mask(json_dir: Path, frame: dict, root: Path, view: int, label: str) -
 
 def alpha_masks(specs: list[ViewSpec], factor: int) -> np.ndarray | None:
     """Masks ``[N, H/f, W/f]`` bool (``box(m) >= 0.5``) from the mask files (``mask_path``) when the
-    frames have them, else from the alpha channels; None if any image lacks both."""
+    frames have them, else from the alpha channels; None if any image lacks both. They are not
+    undistorted: the normalisation only needs the hull within its 1.1 margin."""
     out = []
     for i, s in enumerate(specs):
         if s.mask is not None:

@@ -65,8 +65,7 @@ def _colmap_params(model: str, K: np.ndarray, params: tuple) -> tuple[list[float
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     p = [float(v) for v in params]
     if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
-        coeffs = {"SIMPLE_PINHOLE": (), "SIMPLE_RADIAL": (p[0],), "RADIAL": (p[0], p[1])}[model]
-        return [fx, cx, cy, *p], coeffs
+        return [fx, cx, cy, *p], tuple(p)   # k, or k1, k2: OpenCV's k1, k2 (camera_models.py)
     return [fx, fy, cx, cy, *p], tuple(p)
 
 
