@@ -227,6 +227,18 @@ def test_colmap_missing_image_size_mismatch_and_undistorter_layout(tmp_path):
     with pytest.raises(DatasetError, match="metadata says 80x64") as e:
         load_scene(root)
     assert e.value.code == "size_mismatch"
+    # every file stays inside the folder: an image name or a model file pointing out of it is refused
+    imgs = root / "sparse/0/images.txt"
+    imgs.write_text(imgs.read_text().replace("frame_00002.png", "../../x.png"))
+    with pytest.raises(DatasetError) as e:
+        load_scene(root)
+    assert e.value.code == "path_outside_dataset" and "../../x.png" in e.value.message
+    (tmp_path / "elsewhere.txt").write_text(cams.read_text())
+    cams.unlink()
+    cams.symlink_to(tmp_path / "elsewhere.txt")
+    with pytest.raises(DatasetError) as e:
+        load_scene(root)
+    assert e.value.code == "path_outside_dataset"
     # `colmap image_undistorter` writes sparse/ (no 0/) beside images/
     und = tmp_path / "undistorted"
     shutil.copytree(d / "colmap", und)

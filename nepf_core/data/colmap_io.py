@@ -35,7 +35,7 @@ import numpy as np
 
 from nepf_core.data.camera_models import COLMAP_MODEL_IDS, COLMAP_MODELS, colmap_params_count
 from nepf_core.data.errors import DatasetError
-from nepf_core.data.paths import rel
+from nepf_core.data.paths import dataset_path, rel
 
 FILES = ("cameras", "images", "points3D")
 
@@ -133,7 +133,14 @@ class _Bytes:
         self.pos += n
 
 
+def _inside(path: Path, root: Path) -> Path:
+    """``path`` once it resolves inside ``root`` (a model file may be a link out of the folder)."""
+    label = rel(path, root)
+    return dataset_path(root, label, file=label)
+
+
 def _read_bytes(path: Path, root: Path) -> _Bytes:
+    path = _inside(path, root)
     try:
         return _Bytes(path.read_bytes(), rel(path, root))
     except OSError as e:
@@ -174,6 +181,7 @@ def _points_bin(b: _Bytes) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _text_lines(path: Path, root: Path) -> list[str]:
+    path = _inside(path, root)
     try:
         return path.read_text(encoding="utf-8").splitlines()
     except (OSError, UnicodeDecodeError) as e:
