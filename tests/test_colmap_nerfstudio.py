@@ -350,3 +350,19 @@ def test_ns_process_data_folder_is_nerfstudio_and_opencv_is_undistorted(tmp_path
     for m, r in zip(scene.masks, ref.masks):   # the distorted masks come back with the images:
         edge = binary_dilation(r) & ~binary_erosion(r)   # they differ on the outline only
         assert not ((m != r) & ~edge)[6:-6, 6:-6].any()
+
+
+def test_convert_and_make_scene_commands(tmp_path, capsys):
+    from nepf_core.data import convert, synth
+
+    d = scene_dir()
+    assert convert.main([str(d / "dtu"), str(tmp_path / "c"), "--to", "colmap_txt",
+                         "--points", str(d / "gt/mesh.ply")]) == 0
+    scene = load_scene(tmp_path / "c")
+    assert scene.extras["model_format"] == "txt" and len(scene.points) == len(read_ply_vertices(d / "gt/mesh.ply"))
+    assert_same_rays(scene, load_dtu(d / "dtu"))
+    assert synth.main([str(tmp_path / "s"), "--resolution", "16", "--views", "3", "--test-views", "0",
+                       "--supersample", "1", "--formats", "colmap,nerfstudio"]) == 0
+    assert resolve_dataset(tmp_path / "s/colmap")[0] == "colmap"
+    assert resolve_dataset(tmp_path / "s/nerfstudio")[0] == "nerfstudio"
+    assert resolve_dataset(tmp_path / "s") == ("dtu", tmp_path / "s/dtu")   # DTU still preferred beside them

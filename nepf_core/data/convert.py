@@ -177,3 +177,30 @@ def write_formats(scene_dir: Path, formats, max_points: int = 4000) -> None:
             write_nerfstudio(scene_dir / "dtu", scene_dir / fmt, points=points)
         else:
             write_colmap(scene_dir / "dtu", scene_dir / fmt, binary=fmt == "colmap", points=points)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m nepf_core.data.convert DTU_DIR OUT --to colmap|colmap_txt|nerfstudio [--points PLY]``:
+    a DTU folder (e.g. a shared scene's ``input/dtu``) as another layout, for round trips."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m nepf_core.data.convert", description=main.__doc__.split("\n")[0])
+    ap.add_argument("dtu_dir")
+    ap.add_argument("out")
+    ap.add_argument("--to", choices=EXTRA_FORMATS, required=True)
+    ap.add_argument("--points", help="PLY whose vertices (world) become the sparse points")
+    a = ap.parse_args(argv)
+    points = None
+    if a.points:
+        from nepf_core.data.nerfstudio import read_ply_points
+        points = read_ply_points(Path(a.points), Path(a.points).parent)
+    if a.to == "nerfstudio":
+        write_nerfstudio(Path(a.dtu_dir), Path(a.out), points=points)
+    else:
+        write_colmap(Path(a.dtu_dir), Path(a.out), binary=a.to == "colmap", points=points)
+    print(Path(a.out))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
