@@ -149,7 +149,7 @@ def load_colmap(root: Path | str, split: str = "train", *, downscale: int = 1,
     points = points_in_frame(model.points, wfn)
     extras = {"normalization": norm.method, "colmap_model": label + "/", "model_format": model.ext[1:],
               "undistorted": any(s.distortion is not None for s in specs),
-              "camera_models": sorted({c.model for c in model.cameras.values()}),
+              "camera_models": sorted({model.cameras[im.camera_id].model for im in model.images.values()}),
               "sparse_points": 0 if points is None else int(len(points))}
     return Scene(images=images, masks=masks, intrinsics=Ks.astype(np.float32), c2w=c2w.astype(np.float32),
                  world_from_norm=wfn, names=[s.label for s in specs], root=str(root), source_format="colmap",

@@ -28,7 +28,7 @@ Quaternion to rotation (Hamilton, scalar first):
 from __future__ import annotations
 
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -70,7 +70,6 @@ class ColmapModel:
     errors: np.ndarray | None = None
     """``[P]`` mean reprojection error in pixels."""
     ext: str = ".bin"
-    extras: dict = field(default_factory=dict)
 
 
 def qvec_to_rotmat(q) -> np.ndarray:
