@@ -27,7 +27,6 @@ Views: every frame, in the file's order (no splits, as instant-ngp).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -44,15 +43,16 @@ NERFSTUDIO_KEYS = ("camera_model", "applied_transform", "ply_file_path")
 def is_nerfstudio(root: Path) -> bool:
     """True when ``root/transforms.json`` is a JSON object with one of :data:`NERFSTUDIO_KEYS`
     (an unreadable file is left to the instant-ngp loader, which names the error)."""
+    from nepf_core.data.blender import read_json   # the one (bounded) JSON reader of transforms files
+
     path = existing_file(root, TRANSFORMS)
     if path is None:
         return False
     try:
-        with open(path, encoding="utf-8-sig") as f:
-            meta = json.load(f)
-    except (OSError, ValueError):
+        meta = read_json(path, Path(root))
+    except DatasetError:
         return False
-    return isinstance(meta, dict) and any(k in meta for k in NERFSTUDIO_KEYS)
+    return any(k in meta for k in NERFSTUDIO_KEYS)
 
 
 def applied_transform(meta: dict, label: str) -> np.ndarray | None:
