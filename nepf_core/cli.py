@@ -217,7 +217,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="nepf", description="NePF: single-stage neural inverse rendering")
     sub = ap.add_subparsers(dest="cmd", required=True)
 
-    p = sub.add_parser("fit", help="train NePF on a dataset folder (DTU, Blender or instant-ngp)")
+    p = sub.add_parser("fit", help="train NePF on a dataset folder (DTU, Blender, nerfstudio, instant-ngp or COLMAP)")
     p.add_argument("data", help="dataset folder")
     p.add_argument("--out", required=True, help="run folder to write")
     p.add_argument("--config", default="fast", choices=["paper", "fast", "tiny"], help="preset (default: fast)")

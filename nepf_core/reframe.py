@@ -26,6 +26,9 @@ def reframe_scene(scene: Scene, target_world_from_norm: np.ndarray) -> Scene:
     out = scene.subset(np.arange(scene.n_views))
     out.c2w = c2w.astype(np.float32)
     out.world_from_norm = T.copy()
+    if scene.points is not None:
+        p = np.asarray(scene.points, dtype=np.float64)
+        out.points = (p @ M[:3, :3].T + M[:3, 3]).astype(np.float32)
     return out
 
 

@@ -1,4 +1,4 @@
-"""Datasets: loaders for DTU/IDR/NeuS, NeRF-synthetic/Blender and instant-ngp layouts.
+"""Datasets: loaders for DTU/IDR/NeuS, NeRF-synthetic/Blender, nerfstudio, instant-ngp and COLMAP layouts.
 
 This subpackage is torch-free on purpose: the service validates uploads with it
 in a subprocess (``python -m nepf_core.data.validate``) without importing torch.
@@ -17,6 +17,8 @@ _LAZY = {
     "load_dtu": "nepf_core.data.dtu",
     "load_blender": "nepf_core.data.blender",
     "load_ingp": "nepf_core.data.ingp",
+    "load_nerfstudio": "nepf_core.data.nerfstudio",
+    "load_colmap": "nepf_core.data.colmap",
     "validate_dataset": "nepf_core.data.validate",
     "read_image": "nepf_core.data.images",
     "srgb_to_linear": "nepf_core.data.images",

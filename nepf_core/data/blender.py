@@ -13,6 +13,10 @@ Layout: ``transforms_{train,test,val}.json`` beside the image folders, with
     * ``frames[].transform_matrix``: camera-to-world in the OpenGL convention
       (x right, y up, z backward); ``c2w_cv = c2w_gl @ diag(1, -1, -1, 1)``.
     * OpenCV distortion ``k1, k2, p1, p2`` (``k3``) is undone while reading (see ``ingp.py``).
+    * nerfstudio's keys, wherever they appear: ``camera_model`` (PINHOLE, SIMPLE_PINHOLE, OPENCV
+      load, with ``k4`` as the ``r^8`` term; fisheye and equirectangular are refused by name,
+      ``camera_models.py``) and ``frames[].mask_path`` (relative to the JSON, inside the folder,
+      read like a DTU mask: luma > 127 is the object; every frame or none).
 
 RGBA images: the alpha channel is the mask (``alpha >= 0.5``), and the colour is composited
 onto black in linear space, ``rgb_linear = srgb_to_linear(rgb_stored) * alpha``, so the
@@ -33,10 +37,11 @@ from pathlib import Path
 
 import numpy as np
 
+from nepf_core.data.camera_models import check_nerfstudio_model
 from nepf_core.data.errors import DatasetError
 from nepf_core.data.budget import check_total_pixels, image_size
-from nepf_core.data.images import (SUPPORTED_EXTS, box_downscale, is_image_name, looks_like_image,
-                                   read_image)
+from nepf_core.data.images import (SUPPORTED_EXTS, box_downscale, decode_image, is_image_name,
+                                   looks_like_image, mask_from_array, read_image)
 from nepf_core.data.normalize import (Normalization, c2w_to_normalized, check_c2w,
                                       check_intrinsics, normalization_from_cameras,
                                       opengl_to_opencv)
@@ -132,15 +137,19 @@ def _image_size(path: Path, label: str, view: int) -> tuple[int, int]:
 
 def frame_intrinsics(meta: dict, frame: dict, image: Path, label: str, img_label: str, view: int
                      ) -> tuple[np.ndarray, tuple[int, int] | None, tuple | None]:
-    """``(K [3, 3] float64, declared (W, H) or None, distortion (k1, k2, p1, p2, k3) or None)``.
+    """``(K [3, 3] float64, declared (W, H) or None, distortion (k1, k2, p1, p2, k3[, k4]) or None)``.
 
-    Frame keys override top-level keys; see the module docstring for the formulas.
+    Frame keys override top-level keys; see the module docstring for the formulas. A nerfstudio
+    ``camera_model`` is checked (:func:`~nepf_core.data.camera_models.check_nerfstudio_model`).
     """
     def get(key):
         v = _num(frame, key, label, view)
         return v if v is not None else _num(meta, key, label, view)
 
-    if meta.get("is_fisheye") or frame.get("is_fisheye") or get("k4"):
+    model = frame.get("camera_model", meta.get("camera_model"))
+    if model is not None:    # nerfstudio: the model is named, and k4 is OPENCV's r^8 term
+        check_nerfstudio_model(model, label=label, view=view)
+    elif meta.get("is_fisheye") or frame.get("is_fisheye") or get("k4"):
         raise DatasetError("fisheye cameras are not supported (pinhole + OpenCV radial-tangential only)",
                            file=label, view=view, code="unsupported_camera")
     w, h = get("w"), get("h")
@@ -167,7 +176,8 @@ def frame_intrinsics(meta: dict, frame: dict, image: Path, label: str, img_label
     cy = 0.5 * H if cy is None else cy
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     check_intrinsics(K, label=label, view=view)
-    coeffs = tuple((get(k) or 0.0) for k in ("k1", "k2", "p1", "p2", "k3"))
+    keys = ("k1", "k2", "p1", "p2", "k3") + (("k4",) if model is not None else ())
+    coeffs = tuple((get(k) or 0.0) for k in keys)
     distortion = coeffs if any(c != 0.0 for c in coeffs) else None
     return K, declared, distortion
 
@@ -198,19 +208,45 @@ def parse_transforms(json_path: Path, root: Path) -> list[ViewSpec]:
         img = resolve_image(json_path.parent, fr["file_path"], root, i, label)
         img_label = rel(img, root)
         K, declared, dist = frame_intrinsics(meta, fr, img, label, img_label, i)
+        mask = frame_mask(json_path.parent, fr, root, i, label)
         specs.append(ViewSpec(image=img, label=img_label, K=K, c2w=c2w, expected_wh=declared,
-                              distortion=dist))
+                              distortion=dist, mask=mask, mask_label=None if mask is None else rel(mask, root)))
+    if len({s.mask is None for s in specs}) > 1:
+        v = next(i for i, s in enumerate(specs) if s.mask is None)
+        raise DatasetError("some frames have a 'mask_path' and others do not", file=label, view=v,
+                           code="count_mismatch")
     return specs
 
 
+def frame_mask(json_dir: Path, frame: dict, root: Path, view: int, label: str) -> Path | None:
+    """A frame's ``mask_path`` (nerfstudio: relative to the JSON's folder, white = object), or None.
+
+    It must resolve inside ``root`` (``path_outside_dataset``) and exist (``missing_image``)."""
+    mp = frame.get("mask_path")
+    if mp is None:
+        return None
+    if not isinstance(mp, str):
+        raise DatasetError("'mask_path' must be a string", file=label, view=view, code="bad_json")
+    p = dataset_path(root, mp, base=json_dir, file=label, view=view)
+    if not p.is_file():
+        raise DatasetError("mask file not found", file=rel(p, root), view=view, code="missing_image")
+    return p
+
+
 def alpha_masks(specs: list[ViewSpec], factor: int) -> np.ndarray | None:
-    """Alpha masks ``[N, H/f, W/f]`` bool (``box(alpha) >= 0.5``), or None if any image lacks alpha."""
+    """Masks ``[N, H/f, W/f]`` bool (``box(m) >= 0.5``) from the mask files (``mask_path``) when the
+    frames have them, else from the alpha channels; None if any image lacks both. They are not
+    undistorted: the normalisation only needs the hull within its 1.1 margin."""
     out = []
     for i, s in enumerate(specs):
-        a = read_image(s.image, label=s.label, view=i)
-        if a.shape[-1] != 4:
-            return None
-        out.append(box_downscale(a[..., 3], factor) >= 0.5)
+        if s.mask is not None:
+            m = mask_from_array(decode_image(s.mask, label=s.mask_label, view=i)).astype(np.float32)
+        else:
+            a = read_image(s.image, label=s.label, view=i)
+            if a.shape[-1] != 4:
+                return None
+            m = a[..., 3]
+        out.append(box_downscale(m, factor) >= 0.5)
     if len({m.shape for m in out}) != 1:
         return None  # size errors are reported by the pixel pass
     return np.stack(out)

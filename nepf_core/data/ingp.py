@@ -22,7 +22,7 @@ and ``aabb_scale`` is not needed to place it. What lies outside the unit sphere 
 background model's.
 
 Distortion (OpenCV radial-tangential, on normalised coordinates ``x = (u - cx)/fx``):
-    ``r^2 = x^2 + y^2``, ``g = 1 + k1 r^2 + k2 r^4 + k3 r^6``
+    ``r^2 = x^2 + y^2``, ``g = 1 + k1 r^2 + k2 r^4 + k3 r^6 (+ k4 r^8, nerfstudio's OPENCV only)``
     ``x_d = x g + 2 p1 x y + p2 (r^2 + 2 x^2)``
     ``y_d = y g + p1 (r^2 + 2 y^2) + 2 p2 x y``
 Images are undistorted in the loader, so ``Scene`` stays pinhole with the same ``K``: each
@@ -52,11 +52,12 @@ def is_ingp(root: Path) -> bool:
 
 
 def distort_points(xy: np.ndarray, coeffs: tuple) -> np.ndarray:
-    """Forward OpenCV model on normalised coordinates: ``[..., 2] -> [..., 2]`` (formula above)."""
-    k1, k2, p1, p2, k3 = (tuple(coeffs) + (0.0,) * 5)[:5]
+    """Forward OpenCV model on normalised coordinates: ``[..., 2] -> [..., 2]`` (formula above);
+    ``coeffs = (k1, k2, p1, p2[, k3[, k4]])``, missing ones zero."""
+    k1, k2, p1, p2, k3, k4 = (tuple(coeffs) + (0.0,) * 6)[:6]
     x, y = xy[..., 0], xy[..., 1]
     r2 = x * x + y * y
-    g = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    g = 1.0 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
     xd = x * g + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
     yd = y * g + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
     return np.stack([xd, yd], axis=-1)
@@ -69,12 +70,12 @@ def undistort_points(xyd: np.ndarray, coeffs: tuple, iters: int = 30) -> np.ndar
     for the mild distortion of real lenses (|residual| < 1e-10 after 30 steps for |k| < 0.3
     within the image). Shapes ``[..., 2] -> [..., 2]``.
     """
-    k1, k2, p1, p2, k3 = (tuple(coeffs) + (0.0,) * 5)[:5]
+    k1, k2, p1, p2, k3, k4 = (tuple(coeffs) + (0.0,) * 6)[:6]
     xd, yd = xyd[..., 0], xyd[..., 1]
     x, y = xd.copy(), yd.copy()
     for _ in range(iters):
         r2 = x * x + y * y
-        g = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        g = 1.0 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
         dx = 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
         dy = p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
         x = (xd - dx) / g

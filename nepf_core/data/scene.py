@@ -29,8 +29,12 @@ class Scene:
         world_from_norm: ``[4, 4]`` float64 similarity back to input world coordinates.
         names: per-view source image path, relative to ``root``.
         root: dataset folder the scene was loaded from.
-        source_format: ``"dtu" | "blender" | "ingp" | "synthetic"``.
+        source_format: ``"dtu" | "blender" | "ingp" | "nerfstudio" | "colmap" | "synthetic"``.
         split: which split the views belong to (``"train"``, ``"test"``, ``"all"``).
+        points: ``[P, 3]`` float32 sparse points of the capture's own structure from motion
+            (COLMAP ``points3D``, nerfstudio ``ply_file_path``) in the normalised frame, or None:
+            without masks the object region is looked for among them, else among points
+            triangulated from the images (``nepf_core/train/rules/masks.py``).
     """
 
     images: np.ndarray
@@ -43,6 +47,7 @@ class Scene:
     source_format: str = "unknown"
     split: str = "all"
     extras: dict = field(default_factory=dict)
+    points: np.ndarray | None = None
 
     @property
     def n_views(self) -> int:
@@ -72,5 +77,5 @@ class Scene:
             intrinsics=self.intrinsics[idx], c2w=self.c2w[idx],
             world_from_norm=self.world_from_norm, names=[self.names[i] for i in idx],
             root=self.root, source_format=self.source_format, split=self.split,
-            extras=dict(self.extras),
+            extras=dict(self.extras), points=self.points,
         )

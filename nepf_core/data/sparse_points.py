@@ -117,3 +117,20 @@ def triangulate_scene(scene, cfg: SparseConfig | None = None) -> np.ndarray:
                                             cfg.min_angle_deg)
         points.append(pts[valid])
     return np.concatenate(points) if points else np.zeros((0, 3))
+
+
+#: Fewer structure-from-motion points than this are not trusted to place the object region.
+MIN_CAPTURE_POINTS = 100
+
+
+def scene_points(scene, cfg: SparseConfig | None = None) -> tuple[np.ndarray, str]:
+    """``(points [P, 3] in the scene's frame, source)``: the capture's own sparse points where it has
+    them (``Scene.points``: COLMAP ``points3D``, nerfstudio ``ply_file_path``; at least
+    :data:`MIN_CAPTURE_POINTS`), else ORB points triangulated from the images (:func:`triangulate_scene`).
+
+    Why prefer them: they come from matching and bundle adjustment over every image, not from a few
+    neighbour pairs with the poses held fixed, and they cost no feature extraction here."""
+    pts = getattr(scene, "points", None)
+    if pts is not None and len(pts) >= MIN_CAPTURE_POINTS:
+        return np.asarray(pts, dtype=np.float64), f"the capture's {scene.source_format} sparse points"
+    return triangulate_scene(scene, cfg), "points triangulated from the images"

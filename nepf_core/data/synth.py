@@ -12,6 +12,9 @@ with the inputs at ``OUT/dtu`` and ``OUT/blender`` instead of ``OUT/input/...``)
     OUT/gt/arrays_{train,test}.npz albedo [N,H,W,3], roughness, metallic, alpha [N,H,W],
                                    normal_world [N,H,W,3], rgb_linear [N,H,W,3], depth_z
     OUT/gt/lights.json, OUT/gt/scene.json
+    OUT/colmap/, OUT/colmap_txt/, OUT/nerfstudio/   the DTU cameras and images again, with
+                                   gt mesh vertices as sparse points, when asked (``formats``,
+                                   ``--formats``; ``convert.py``)
 
 Geometry: the object lives in *object units* (inside the unit ball, Z up) and
 ``x_world = world_scale * x_obj + world_offset``; the DTU ``scale_mat`` is
@@ -194,7 +197,7 @@ def make_scene(out_dir, *, shape: str = "sphere", material: str = "diffuse", alb
                world_scale: float = 1.0, world_offset=(0.0, 0.0, 0.0), camera_distance: float = 3.0,
                fov_deg: float | None = None, exposure: float | str = 1.0, seed: int = 0,
                masks: bool = True, supersample: int = 2, write_mesh: bool = True,
-               name: str | None = None) -> dict:
+               name: str | None = None, formats: tuple = ()) -> dict:
     """Render a synthetic scene and write it as DTU + Blender + ground truth (see module doc).
 
     Args:
@@ -212,6 +215,7 @@ def make_scene(out_dir, *, shape: str = "sphere", material: str = "diffuse", alb
         seed: rotates the camera spirals (azimuth phase).
         masks: write DTU masks and RGBA Blender images.
         supersample: ``ss x ss`` samples per pixel.
+        formats: also write the training views as these layouts (``convert.EXTRA_FORMATS``).
     Returns:
         the ``scene.json`` dict (plus ``"out_dir"``).
     """
@@ -306,6 +310,9 @@ def make_scene(out_dir, *, shape: str = "sphere", material: str = "diffuse", alb
         "timing_s": {"total": time.time() - t_start},
     }
     (gt / "scene.json").write_text(json.dumps(scene, indent=1))
+    if formats:
+        from nepf_core.data.convert import write_formats
+        write_formats(out, formats)
     return {**scene, "out_dir": str(out)}
 
 
@@ -344,6 +351,8 @@ def _add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int)
     p.add_argument("--supersample", type=int)
     p.add_argument("--no-masks", dest="masks", action="store_false", default=None)
+    p.add_argument("--formats", type=lambda v: tuple(f for f in v.split(",") if f),
+                   help="also write the training views as colmap,colmap_txt,nerfstudio (comma-separated)")
 
 
 def run_make_scene(args: argparse.Namespace) -> int:

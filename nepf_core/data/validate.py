@@ -48,7 +48,13 @@ def _split_specs(fmt: str, folder: Path) -> dict[str, list]:
     if fmt == "blender":
         return {s: parse_transforms(split_file(folder, s), folder)
                 for s in SPLITS if split_file(folder, s).is_file()}
+    if fmt == "colmap":
+        from nepf_core.data.colmap import parse_colmap
+        return {"train": parse_colmap(folder)[0]}
     from nepf_core.data.ingp import TRANSFORMS
+    if fmt == "nerfstudio":
+        from nepf_core.data.nerfstudio import nerfstudio_extras
+        nerfstudio_extras(folder)   # applied_transform and ply_file_path are checked too
     return {"train": parse_transforms(folder / TRANSFORMS, folder)}
 
 

@@ -34,7 +34,7 @@ class ViewSpec:
         mask: separate mask file (DTU) or None.
         mask_label: ``mask`` relative to the root.
         expected_wh: ``(W, H)`` declared by the metadata (JSON ``w``/``h``), checked when set.
-        distortion: OpenCV ``(k1, k2, p1, p2, k3)`` to undo while reading, or None.
+        distortion: OpenCV ``(k1, k2, p1, p2[, k3[, k4]])`` to undo while reading, or None.
     """
 
     image: Path
@@ -44,7 +44,7 @@ class ViewSpec:
     mask: Path | None = None
     mask_label: str | None = None
     expected_wh: tuple[int, int] | None = None
-    distortion: tuple[float, float, float, float, float] | None = None
+    distortion: tuple[float, ...] | None = None
 
 
 Undistorter = Callable[[np.ndarray, np.ndarray, tuple], np.ndarray]
@@ -73,7 +73,8 @@ def read_view(s: ViewSpec, i: int, *, downscale: int = 1, max_side: int | None =
       working grid as 0/1 values and thresholded at 0.5; they take precedence over alpha.
     * ``undistort(arr, K, coeffs)`` is applied *after* resampling, on the working grid
       with ``K' = S K`` (the coefficients act on normalised coordinates, so they do not
-      change); both filters are linear and nearly commute, and this is far cheaper.
+      change); both filters are linear and nearly commute, and this is far cheaper. Mask files
+      are undistorted the same way (as 0/1 values, re-thresholded at 0.5).
 
     Per-view checks (``DatasetError`` naming the file and view ``i``): decode errors,
     the size of view 0 when given as ``same_as`` (``size_mismatch``), the size declared by
@@ -122,6 +123,8 @@ def read_view(s: ViewSpec, i: int, *, downscale: int = 1, max_side: int | None =
         m = mask_from_array(marr)
         del marr
         mask = m if (w, h) == size else to_working_grid(m.astype(np.float32), downscale, size) >= 0.5
+        if undistort is not None and s.distortion is not None:   # the mask follows its image's lens
+            mask = undistort(mask.astype(np.float32)[..., None], S @ s.K, s.distortion)[..., 0] >= 0.5
         if not mask.any():
             raise DatasetError("mask is empty (no foreground pixel)", file=mlabel, view=i,
                                code="empty_mask")

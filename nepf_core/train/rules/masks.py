@@ -61,7 +61,8 @@ def decide_object_region(scene) -> tuple[list[float] | None, list[Decision], np.
                                          tuple[np.ndarray, float] | None]:
     """Without masks: ``(halfspace, decisions, points, frame)``.
 
-    The points triangulated from the images (:mod:`nepf_core.data.sparse_points`) are searched
+    The capture's sparse points (COLMAP, nerfstudio) or, without them, the points triangulated from
+    the images (:func:`nepf_core.data.sparse_points.scene_points`) are searched
     for a support plane (:mod:`nepf_core.data.object_region`) within the largest ball around
     the load frame's origin that keeps every camera outside. With one, the object is what lies in
     front of it, and ``frame = (centre, radius)`` is the ball around those points
@@ -73,12 +74,12 @@ def decide_object_region(scene) -> tuple[list[float] | None, list[Decision], np.
     from nepf_core.data.normalize import CAMERA_CLEARANCE
     from nepf_core.data.object_region import decide_object_region as decide
     from nepf_core.data.object_region import enclosing_ball
-    from nepf_core.data.sparse_points import triangulate_scene
+    from nepf_core.data.sparse_points import scene_points
 
     def in_front(p: np.ndarray, hs) -> np.ndarray:
         return p[p @ np.asarray(hs[:3]) + hs[3] > 0.0]
 
-    sparse = triangulate_scene(scene)
+    sparse, source = scene_points(scene)
     cams = np.asarray(scene.c2w, dtype=np.float64)[:, :3, 3]
     reach = float(np.linalg.norm(cams, axis=1).min()) / CAMERA_CLEARANCE
     region = decide(scene, points=sparse, search_radius=reach)
@@ -91,13 +92,13 @@ def decide_object_region(scene) -> tuple[list[float] | None, list[Decision], np.
         sparse, hs = (sparse - centre) / radius, region.halfspace()
         decisions.append(Decision("object_frame", {"centre": [round(float(v), 4) for v in centre],
                                                    "radius": round(radius, 4)},
-                                  f"the SDF models the ball around the {len(obj)} points triangulated in front "
+                                  f"the SDF models the ball around the {len(obj)} sparse points in front "
                                   f"of the support (centre and radius in units of the load frame's unit sphere, "
                                   f"the largest ball every camera sees whole)", 0))
     inside = sparse[np.linalg.norm(sparse, axis=1) < 1.0]
     if hs is not None:
         inside = in_front(inside, hs)
     decisions.insert(0, Decision("object_region", hs is not None,
-                                 f"no masks; {region.reason} ({region.points} points triangulated in the region, "
-                                 f"{len(sparse)} in all; {len(inside)} in front of the support)"))
+                                 f"no masks; {region.reason} ({region.points} points in the region, "
+                                 f"{len(sparse)} in all, from {source}; {len(inside)} in front of the support)"))
     return (None if hs is None else list(hs)), decisions, inside, frame

@@ -144,7 +144,7 @@ export function renderUpload(root) {
   },
   h('p', { class: 'drop-title' }, 'Drop a dataset folder (or a .zip) here'),
   h('p', { id: 'drop-help', class: 'small muted' },
-    'DTU (cameras.npz, image/, mask/), NeRF-synthetic / Blender (transforms_train.json) or instant-ngp (transforms.json). A folder is zipped in your browser.'));
+    'DTU (cameras.npz, image/, mask/), NeRF-synthetic / Blender (transforms_train.json), nerfstudio or instant-ngp (transforms.json), or COLMAP (sparse/0/ + images/). A folder is zipped in your browser.'));
 
   const preset = h('select', { id: 'preset', name: 'preset' },
     PRESETS.map((p) => h('option', { value: p.value, selected: p.value === 'fast' }, p.label)));
