@@ -224,7 +224,7 @@ def test_valid_upload_queues_job_with_location(make_client, tmp_path):
     assert job["status"] == "queued" and job["config"] == {"preset": "tiny", "iters": 7, "time_budget_s": None,
                                                            "name": "my scan", "max_image_side": None,
                                                            "texture_size": None, "max_faces": None,
-                                                           "holdout_every": 0}   # 6 views: none held out
+                                                           "holdout_every": 0, "up_axis": None}   # 6 views: none held out; up from the cameras
     assert job["dataset"]["format"] == "dtu" and job["dataset"]["n_views"] == 6
     assert (data / "jobs" / job["id"] / "dataset" / "cameras.npz").is_file()
     assert list((data / "uploads").iterdir()) == []
