@@ -7,6 +7,7 @@ import time
 from dataclasses import dataclass
 from typing import Optional
 
+from cachetools import TTLCache
 from celery import Celery
 from fastapi import Request
 from sqlalchemy.orm import sessionmaker
@@ -15,32 +16,31 @@ from jobstore.engine import session_factory
 from jobstore.queue import make_celery
 
 from .auth import TokenVerifier, load_secret
-from .settings import Settings
+from jobstore.settings import Settings
 
 
 class JobCache:
     """Micro-cache of rendered ``GET /jobs/{id}`` bodies: many pollers of one job cost one DB read
-    per ``NEPF_POLL_CACHE_S`` (the worker writes progress about once a second anyway)."""
+    per ``NEPF_POLL_CACHE_S`` (the worker writes progress about once a second anyway). A bounded
+    TTL cache (cachetools; the least recently used entry goes first when full), one lock."""
+
+    MAX_ENTRIES = 5000
 
     def __init__(self, ttl_s: float) -> None:
         self.ttl_s = ttl_s
-        self._d: dict[str, tuple[float, str, bytes]] = {}
+        self._d: TTLCache = TTLCache(self.MAX_ENTRIES, ttl=max(ttl_s, 0.0), timer=time.monotonic)
         self._lock = threading.Lock()
 
     def get(self, job_id: str, owner: str) -> Optional[bytes]:
-        hit = self._d.get(job_id)
-        if hit is None or hit[0] < time.monotonic() or hit[1] != owner:
-            return None
-        return hit[2]
+        with self._lock:
+            hit = self._d.get(job_id)
+        return hit[1] if hit is not None and hit[0] == owner else None
 
     def put(self, job_id: str, owner: str, body: bytes) -> None:
         if self.ttl_s <= 0:
             return
         with self._lock:
-            if len(self._d) > 5000:
-                now = time.monotonic()
-                self._d = {k: v for k, v in self._d.items() if v[0] >= now}
-            self._d[job_id] = (time.monotonic() + self.ttl_s, owner, body)
+            self._d[job_id] = (owner, body)
 
     def drop(self, job_id: str) -> None:
         with self._lock:

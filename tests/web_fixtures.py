@@ -243,12 +243,32 @@ def pipeline_held_out_standin(request):
             f.flush()
             request.callbacks.progress({"step": step, "total": total, "fraction": step / total, "stage": "training",
                                         "eta_s": (total - step) * STANDIN_STEP_S, "wall_s": wall})
+            if step == STANDIN_HOLD_STEP:
+                _hold_until_released(request, run)
     return {"status": status, "step": step, "total": total, "wall_s": time.time() - t0, "manifest": None,
             "split": {"holdout_every": every, "n_test": held, "n_train": n_views - held}}
 
 
 #: the stand-in's schedule: 150 steps of 0.1 s, a held-out evaluation every 10 steps
 STANDIN_STEPS, STANDIN_STEP_S, STANDIN_EVAL_EVERY = 150, 0.1, 10
+#: the stand-in holds after this step (its second held-out record) until :func:`release_standin`,
+#: so that a test sees the job training while its chart shows points, on a machine of any speed
+STANDIN_HOLD_STEP = 2 * STANDIN_EVAL_EVERY
+STANDIN_RELEASE, STANDIN_MAX_HOLD_S = "standin-release", 120.0
+
+
+def _hold_until_released(request, run: Path) -> None:
+    """Wait for ``RUN/standin-release`` (or a stop, or STANDIN_MAX_HOLD_S)."""
+    deadline = time.time() + STANDIN_MAX_HOLD_S
+    while not (run / STANDIN_RELEASE).exists() and time.time() < deadline:
+        if request.callbacks.stop_requested():
+            return
+        time.sleep(0.05)
+
+
+def release_standin(data_dir: Path, job_id: str) -> None:
+    """Let a held stand-in job (``pipeline_held_out_standin``) train on."""
+    (Path(data_dir) / "jobs" / job_id / "run" / STANDIN_RELEASE).touch()
 
 
 class Backend:

@@ -144,6 +144,8 @@ export const api = {
   artifacts: (id, signal) => request('GET', `/jobs/${enc(id)}/artifacts`, { signal }),
   cancel: (id) => request('POST', `/jobs/${enc(id)}/cancel`),
   remove: (id) => request('DELETE', `/jobs/${enc(id)}`),
+  /** The JSON schema of a job's config with this server's limits (the upload form checks them). */
+  jobConfigSchema: (signal) => request('GET', '/schemas/job-config', { signal }),
   artifactUrl,
   /** Fetch an artifact as a Response (auth header attached). */
   async artifact(id, path, signal) {
