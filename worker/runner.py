@@ -1,6 +1,7 @@
 """Run one job: claim it, call the pipeline (``NEPF_PIPELINE``), record the outcome. No Celery in here.
 
-Delivery semantics (see docs/SERVICE.md):
+Delivery semantics (see docs/SERVICE.md; each state change is one conditional UPDATE of
+:mod:`jobstore.state`):
 
 * **claim**: one conditional UPDATE moves the job to ``running`` with this worker's lease,
   only if it is queued/running, not cancelled, and nobody holds a live lease. A duplicate or
