@@ -212,8 +212,8 @@ def test_reconciler_requeues_orphans_only(store):
 
 def test_reconciler_send_failure_is_not_counted_and_retried(store):
     settings, Session = store
-    lost = new_job(settings, Session, status="queued", enqueued_at=utcnow() - dt.timedelta(seconds=200),
-                   enqueue_count=1)
+    old = utcnow() - dt.timedelta(seconds=200)
+    lost = new_job(settings, Session, status="queued", enqueued_at=old, created_at=old, enqueue_count=1)
 
     def down(jid, q):
         raise ConnectionError("broker down")
