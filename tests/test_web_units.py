@@ -213,9 +213,11 @@ out.glyph = [glyphLength(1, 4 * Math.PI / 0.01), glyphLength(1, 1), glyphLength(
 out.range = [intensityRange([3, NaN, -1, 7]), intensityRange([NaN])];
 const order = shuffledIndices(50);
 out.shuffle = [order.length, new Set(order).size, JSON.stringify(order) === JSON.stringify(shuffledIndices(50))];
-// a rod along x, up +y: seen from the side (view direction nearly perpendicular to x)
-const rod = Array.from({ length: 21 }, (_, i) => V([i / 10 - 1, 0, 0])).concat([V([0, 0.05, 0.05])]);
-out.rodView = bestViewDirection(rod, V([0, 1, 0]), V([0, 0, 1]), V([1, 0, 0])).toArray();
+// a box 2 long in x, 0.6 high, 0.2 deep, up +y: seen from the side (a view direction nearly
+// perpendicular to x: its silhouette 2 x 0.6 against 0.2 x 0.6 end-on)
+const box = [];
+for (const x of [-1, 1]) for (const y of [-0.3, 0.3]) for (const z of [-0.1, 0.1]) box.push(V([x, y, z]));
+out.rodView = bestViewDirection(box, V([0, 1, 0]), V([0, 0, 1]), V([1, 0, 0])).toArray();
 // a ray from z=10 down the -z axis through the centre: the handle's near side (+z) or far side (-z)
 const ray = new THREE.Ray(V([0, 0, 10]), V([0, 0, -1]));
 out.drag = [dragDirection(ray, V([0, 0, 0]), GIZMO_RADIUS, false).toArray(), dragDirection(ray, V([0, 0, 0]), GIZMO_RADIUS, true).toArray(),
@@ -261,7 +263,9 @@ def test_viewer_and_job_page_helpers():
     assert abs(g[0] - 0.08) < 1e-12 and g[1] == 0.15 and g[2] == 0.025 and g[3] == 25 and g[4] == 1
     assert out["range"] == [[-1, 7], [0, 1]]
     assert out["shuffle"] == [50, 50, True]
-    assert abs(out["rodView"][0]) < 0.3, out["rodView"]           # not end-on along the rod
+    # the 12 azimuths (30 degrees apart from 0.6 rad, 20 degrees up) give bounding-box areas from
+    # 0.44 (end-on, dir = (+-0.937, 0.342, -+0.072)) to 1.775 (dir = (0.531, 0.342, 0.776), the first of the largest)
+    np.testing.assert_allclose(out["rodView"], [0.5306, 0.3420, 0.7756], atol=1e-4)
     np.testing.assert_allclose(out["drag"][0], [0, 0, 1], atol=1e-12)
     np.testing.assert_allclose(out["drag"][1], [0, 0, -1], atol=1e-12)
     np.testing.assert_allclose(out["drag"][2], [1, 0, 0], atol=1e-12)   # a miss: the closest point, on the sphere
