@@ -254,11 +254,13 @@ STANDIN_STEPS, STANDIN_STEP_S, STANDIN_EVAL_EVERY = 150, 0.1, 10
 #: the stand-in holds after this step (its second held-out record) until :func:`release_standin`,
 #: so that a test sees the job training while its chart shows points, on a machine of any speed
 STANDIN_HOLD_STEP = 2 * STANDIN_EVAL_EVERY
-STANDIN_RELEASE, STANDIN_MAX_HOLD_S = "standin-release", 120.0
+STANDIN_HOLDING, STANDIN_RELEASE, STANDIN_MAX_HOLD_S = "standin-holding", "standin-release", 120.0
 
 
 def _hold_until_released(request, run: Path) -> None:
-    """Wait for ``RUN/standin-release`` (or a stop, or STANDIN_MAX_HOLD_S)."""
+    """Say so in ``RUN/standin-holding``, then wait for ``RUN/standin-release`` (or a stop, or
+    STANDIN_MAX_HOLD_S)."""
+    (run / STANDIN_HOLDING).touch()
     deadline = time.time() + STANDIN_MAX_HOLD_S
     while not (run / STANDIN_RELEASE).exists() and time.time() < deadline:
         if request.callbacks.stop_requested():
@@ -266,8 +268,13 @@ def _hold_until_released(request, run: Path) -> None:
         time.sleep(0.05)
 
 
+def standin_holding(data_dir: Path, job_id: str) -> bool:
+    """Whether a stand-in job (``pipeline_held_out_standin``) reached its hold."""
+    return (Path(data_dir) / "jobs" / job_id / "run" / STANDIN_HOLDING).exists()
+
+
 def release_standin(data_dir: Path, job_id: str) -> None:
-    """Let a held stand-in job (``pipeline_held_out_standin``) train on."""
+    """Let a held stand-in job train on."""
     (Path(data_dir) / "jobs" / job_id / "run" / STANDIN_RELEASE).touch()
 
 
