@@ -222,6 +222,8 @@ def pipeline_held_out_standin(request):
     ``request.holdout_every`` reached it and is > 0, with ``test_views`` the number held out
     (``ceil(n_views / K)``, ``n_views`` counted in the dataset's ``image/``). Train records
     carry a loss; no export."""
+    from nepf_core.holdout_preview import write_holdout_preview   # numpy + Pillow only
+
     run = Path(request.run_dir)
     every = int(request.holdout_every or 0)
     n_views = len(list(Path(request.data_dir, "image").glob("*.png")))
@@ -237,9 +239,13 @@ def pipeline_held_out_standin(request):
             wall = round(time.time() - t0, 3)
             f.write(json.dumps({"kind": "train", "step": step, "wall_s": wall, "loss": 1.0 / step}) + "\n")
             if held and (step % STANDIN_EVAL_EVERY == 0 or step == total):
+                # the real picture writer, on a render that approaches the truth as the steps go
+                truth = np.linspace(0.0, 1.0, 16 * 16 * 3).reshape(16, 16, 3)
+                preview = write_holdout_preview(run, truth * min(1.0, step / total), truth)
                 f.write(json.dumps({"kind": "test", "step": step, "wall_s": wall, "test_views": held,
                                     "test_psnr": 12.0 + step / 10, "test_psnr_full": 10.0 + step / 10,
-                                    "test_psnr_radiance": 13.0 + step / 10, "final": step == total}) + "\n")
+                                    "test_psnr_radiance": 13.0 + step / 10, "final": step == total,
+                                    "preview": preview}) + "\n")
             f.flush()
             request.callbacks.progress({"step": step, "total": total, "fraction": step / total, "stage": "training",
                                         "eta_s": (total - step) * STANDIN_STEP_S, "wall_s": wall})

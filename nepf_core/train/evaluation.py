@@ -9,6 +9,7 @@ import torch
 
 from nepf_core.data.scene import Scene
 from nepf_core.evaluate import SSIM_BORDER, albedo_psnr_aligned, psnr, render_view, srgb_np, ssim
+from nepf_core.holdout_preview import write_holdout_preview
 from nepf_core.losses import srgb_encode
 from nepf_core.model import ModelFieldQuery
 from nepf_core.rays import PixelSampler, unlit_threshold
@@ -81,7 +82,7 @@ def mean_ssim(pred: np.ndarray, gt: np.ndarray, masks: np.ndarray | None) -> dic
 
 
 def evaluate_test(model, cfg, targets: EvalTargets, device, world_from_norm: np.ndarray,
-                  stride: int, with_chamfer: bool, shading: Shading | None = None) -> dict:
+                  stride: int, with_chamfer: bool, shading: Shading | None = None, preview_dir=None) -> dict:
     """Held-out metrics: masked/full PBR PSNR and SSIM, aligned albedo PSNR, Chamfer (when given).
 
     ``test_psnr`` / ``test_psnr_full`` score the surface PBR colour (the method's relightable
@@ -93,6 +94,8 @@ def evaluate_test(model, cfg, targets: EvalTargets, device, world_from_norm: np.
     ``albedo_psnr`` is over every foreground pixel; ``albedo_psnr_lit`` only over foreground
     pixels whose test image is lit (``max_c L_gt >= unlit_rel_threshold * q99``, the training
     rule), with ``lit_fraction`` their share of the foreground. ``shading``: the run state's.
+    ``preview_dir``: a run folder; view 0's render | ground truth | error picture is written there
+    (:func:`nepf_core.holdout_preview.write_holdout_preview`) and named in ``preview``.
     """
     ts = targets.test_scene
     sampler = PixelSampler(ts, device)
@@ -110,6 +113,8 @@ def evaluate_test(model, cfg, targets: EvalTargets, device, world_from_norm: np.
         rec[key] = rec[key + "_full"] if m is None else psnr(c, gt_srgb, m)
         if key == "test_psnr":
             rec.update(mean_ssim(c, gt_srgb, m))
+            if preview_dir is not None:
+                rec["preview"] = write_holdout_preview(preview_dir, c[0], gt_srgb[0])
     if targets.gt_albedo is not None and ts.masks is not None:
         ga = targets.gt_albedo[:, ::stride, ::stride]
         alb = np.stack(albs)

@@ -3,6 +3,7 @@
 import { api } from '../api.js';
 import { followJob } from '../live.js';
 import { JobCharts } from '../charts.js';
+import { HoldoutPreview } from './holdout.js';
 import { AssetViewer, CHANNELS, ENVIRONMENTS, COLORMAP_CSS, UP_AXES } from '../viewer3d.js';
 import { h, clear, filenameFromDisposition, fmtBytes, fmtDuration, fmtTime, isFinal, metricsToCsv, slider, toast } from '../util.js';
 import { progressBar, statusBadge } from './jobs.js';
@@ -85,6 +86,7 @@ export function renderJob(root, id) {
 
   // ---------------------------------------------------------------- charts
   const chartsHost = h('div', { class: 'charts', id: 'charts' });
+  const holdout = new HoldoutPreview(id);
 
   // ---------------------------------------------------------------- viewer
   const viewerHost = h('div', { class: 'viewer-host', id: 'viewer' });
@@ -99,7 +101,7 @@ export function renderJob(root, id) {
     statusSlot, errorBox, noteBox, meta,
     h('section', { class: 'panel', 'aria-labelledby': 'charts-title' },
       h('h2', { id: 'charts-title' }, 'Training'),
-      chartsHost),
+      chartsHost, holdout.el),
     h('section', { class: 'panel', 'aria-labelledby': 'decisions-title' },
       h('h2', { id: 'decisions-title' }, 'What this run left out, and why'),
       decisionsHost),
@@ -466,6 +468,7 @@ export function renderJob(root, id) {
       if (stopped) return;
       allRecords.push(...recs);
       charts.add(recs);
+      holdout.update(recs);
     },
   });
 
@@ -473,6 +476,7 @@ export function renderJob(root, id) {
     stopped = true;
     stop();
     charts.destroy();
+    holdout.dispose();
     viewer?.dispose();
   };
 }
