@@ -18,8 +18,8 @@ import pytest
 
 from test_web_viewer import (assert_labelled, browser, chart_state, list_jobs, new_page,  # noqa: F401 - fixtures
                              shots)
-from web_fixtures import (STANDIN_EVAL_EVERY, STANDIN_HOLD_STEP, STANDIN_STEPS, WEB, Backend, ensure_web_built,
-                          make_sphere_dtu, release_standin, standin_holding, wait_for)
+from web_fixtures import (STANDIN_EVAL_EVERY, STANDIN_HOLD_ENV, STANDIN_HOLD_STEP, STANDIN_STEPS, WEB, Backend,
+                          ensure_web_built, make_sphere_dtu, release_standin, standin_holding, wait_for)
 
 NODE_SCRIPT = r"""
 import { jobOptions, limitsFromSchema } from './views/upload.js';
@@ -85,7 +85,7 @@ def standin_backend(tmp_path_factory):
     ensure_web_built()
     tmp = tmp_path_factory.mktemp("webholdout")
     be = Backend(tmp / "data", tmp / "serve.log",
-                 env_extra={"NEPF_PIPELINE": "web_fixtures:pipeline_held_out_standin"})
+                 env_extra={"NEPF_PIPELINE": "web_fixtures:pipeline_held_out_standin", STANDIN_HOLD_ENV: "1"})
     yield be
     be.stop()
 

@@ -23,7 +23,7 @@ which made ~40 % of the old diagonal-only term noise; a first difference of ``g`
   double backward, as the eikonal term already does. An exact autograd Hessian (three more
   backward passes, then a triple backward in training) costs ~20 % more and does not work
   for the grid SDF.
-* ``gradient="fd"`` (grid SDF: ``grid_sample`` has no second derivative in its sampling
+* ``gradient="fd"`` (grid SDF: the trilinear lookup has no second derivative in its sampling
   grid): central differences of ``f`` with the same step, so ``H`` is the usual second-
   difference stencil with step ``2e`` on the diagonal (36 SDF evaluations per point). Use a
   step tied to the grid cell (``GridSDF.fd_step``) so that ``e^2`` stays well above the

@@ -310,7 +310,7 @@ class TrainingRun:
             with self.ema.applied(self.model) if self.ema is not None else nullcontext():
                 stride = max(self.cfg.train.eval_stride, self.targets.stride or 1)
                 rec = evaluate_test(self.model, self.run_cfg, self.targets, self.device, self.scene.world_from_norm,
-                                    stride, with_chamfer=True, shading=self.run_state.shading())
+                                    stride, with_chamfer=True, shading=self.run_state.shading(), preview_dir=self.dir)
             rec.update({"kind": "test", "step": self.step, "wall_s": round(w_train, 3), "final": final,
                         "eval_stride": stride})
             for h in self.hooks:

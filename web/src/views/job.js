@@ -3,6 +3,7 @@
 import { api } from '../api.js';
 import { followJob } from '../live.js';
 import { JobCharts } from '../charts.js';
+import { HoldoutPreview } from './holdout.js';
 import { h, clear, fmtDuration, fmtTime, isFinal, toast } from '../util.js';
 import { progressBar, statusBadge } from './jobs.js';
 import { loadResults, renderDownloads } from './job_results.js';
@@ -70,7 +71,7 @@ function actionButtons(id) {
 const panel = (id, title, ...body) => h('section', { class: 'panel', 'aria-labelledby': id }, h('h2', { id }, title), ...body);
 
 /** The page's elements, appended to `root`. */
-function layout(root, id) {
+function layout(root, id, holdout) {
   const els = {
     title: h('h1', { id: 'job-title' }, `Job ${id}`),
     status: h('div', { class: 'job-status', id: 'job-status' }),
@@ -90,7 +91,7 @@ function layout(root, id) {
     h('p', { class: 'crumbs small' }, h('a', { href: '#/jobs' }, '← All jobs')),
     h('div', { class: 'page-head' }, els.title, h('div', { class: 'job-actions' }, els.cancel, els.remove)),
     els.status, els.error, els.note, els.meta,
-    panel('charts-title', 'Training', els.charts),
+    panel('charts-title', 'Training', els.charts, holdout.el),
     panel('decisions-title', 'What this run left out, and why', els.decisions),
     panel('asset-title', 'Recovered asset', h('div', { class: 'viewer-layout' },
       h('div', { class: 'viewer-column' }, h('div', { class: 'viewer-frame' }, els.viewerHost, els.viewerMsg), els.relitStrip),
@@ -134,7 +135,8 @@ function renderHeader(els, job) {
 }
 
 export function renderJob(root, id) {
-  const els = layout(root, id);
+  const holdout = new HoldoutPreview(id); // the latest held-out picture, below the charts
+  const els = layout(root, id, holdout);
   const charts = new JobCharts(els.charts);
   const records = [];
   const st = { job: null, stopped: false, viewer: null, controls: null, resultsRequested: false, decisionsKey: '' };
@@ -185,6 +187,7 @@ export function renderJob(root, id) {
       if (st.stopped) return;
       records.push(...recs);
       charts.add(recs);
+      holdout.update(recs);
     },
   });
 
@@ -192,6 +195,7 @@ export function renderJob(root, id) {
     st.stopped = true;
     stop();
     charts.destroy();
+    holdout.dispose();
     st.viewer?.dispose();
   };
 }
