@@ -45,8 +45,9 @@ VARIANTS = {
     # importance samples, no occupancy grid, no empty rays left out), heads evaluated everywhere,
     # nothing adaptive. The brief measured 0.56 s/step and 21-24 dB held-out radiance PSNR at 300 s
     "naive": {"train.adaptive": False, "model.occupancy_resolution": 0,
-              "model.sdf_grid": {"n_levels": 1, "base_resolution": 96, "max_resolution": 96,
-                                 "features_per_level": 4, "start_levels": 1},
+              "model.sdf_grid.n_levels": 1, "model.sdf_grid.base_resolution": 96,
+              "model.sdf_grid.max_resolution": 96, "model.sdf_grid.features_per_level": 4,
+              "model.sdf_grid.start_levels": 1,
               "render.n_samples": 48, "render.n_importance": 0, "render.up_sample_steps": 0,
               "render.alpha_mode": "midpoint", "render.normals": "fd", "render.head_weight_threshold": 0.0,
               "render.surface_refine": False, "train.batch_rays": 1024},

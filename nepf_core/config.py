@@ -48,6 +48,10 @@ class TrainConfig:
     """Wall-clock period of held-out evaluation (0: only at the end, when a test set is given)."""
     eval_stride: int = 1
     """Render held-out views every N-th pixel (speed)."""
+    unlit_rel_threshold: float = 0.01
+    """A target pixel is unlit when ``max_c L_gt < unlit_rel_threshold * q99(foreground)``
+    (:func:`nepf_core.rays.unlit_threshold`): such pixels do not train the albedo
+    (``render.unlit_albedo_stopgrad``) and are left out of the lit-pixel metrics."""
     max_nonfinite_steps: int = 50
     """Fail the run after this many skipped (non-finite) steps."""
     grad_clip: float = 0.0
@@ -96,8 +100,21 @@ class NePFConfig:
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2)
 
+    def check(self) -> None:
+        """ValueError for settings that contradict each other (fit() calls it)."""
+        if (self.loss.w_albedo_smooth > 0 or self.loss.w_brdf_smooth > 0) and self.render.albedo_smooth_sigma <= 0:
+            raise ValueError("loss.w_albedo_smooth / loss.w_brdf_smooth > 0 need render.albedo_smooth_sigma > 0 "
+                             "(the jitter of the smoothness priors); set it, or set the weights to 0")
+
     @staticmethod
     def from_dict(d: dict) -> "NePFConfig":
+        """The config of a ``config.json``. Keys no field has (removed since) are ignored; a key that
+        moved is read from where older runs wrote it (``render.unlit_rel_threshold``)."""
+        render, train = dict(d.get("render", {})), dict(d.get("train", {}))
+        if "unlit_rel_threshold" in render and "unlit_rel_threshold" not in train:
+            train["unlit_rel_threshold"] = render["unlit_rel_threshold"]
+        d = {**d, "render": render, "train": train}
+
         def build(cls, data):
             kwargs = {}
             for f in dataclasses.fields(cls):

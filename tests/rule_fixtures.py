@@ -37,11 +37,11 @@ def resumed(a: Adaptivity, rs: RunState, **kw):
 
 
 def fake_out(share=None, metallic=0.0, n=32, opaque=True):
-    """A RenderOutput-like object: ``n`` rays, all on the surface when ``opaque``."""
-    surf = {"metallic": torch.full((n,), float(metallic))}
-    if share is not None:
-        surf["specular"] = torch.full((n,), float(share))
-    return SimpleNamespace(weight_sum=torch.full((n,), 0.9 if opaque else 0.1), surf=surf)
+    """A RenderOutput-like object: ``n`` rays, all on the surface when ``opaque``; with ``share`` the
+    lobe split of a specular check (pass ``check=True`` to ``after_step``)."""
+    lobe = None if share is None else SimpleNamespace(share=torch.full((n,), float(share)))
+    return SimpleNamespace(weight_sum=torch.full((n,), 0.9 if opaque else 0.1), lobe=lobe,
+                           surface=SimpleNamespace(metallic=torch.full((n,), float(metallic))))
 
 
 def losses(eik=0.0):

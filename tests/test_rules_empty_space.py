@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 
+from nepf_core.fields.sdf_grid import GridSDFConfig
 from nepf_core.train.adaptivity import Adaptivity
 from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.run_state import RunState
@@ -103,7 +104,7 @@ def test_fast_fit_with_masks_carves_the_visual_hull_and_leaves_empty_rays_out(tm
     make_scene(tmp_path / "s", n_views=6, n_test=0, resolution=24, supersample=1, fov_deg=75.0, write_mesh=False)
     scene = load_scene(tmp_path / "s" / "dtu")
     cfg = fast()
-    cfg.model.sdf_grid = {"base_resolution": 8, "max_resolution": 32}
+    cfg.model.sdf_grid = GridSDFConfig(base_resolution=8, max_resolution=32)
     cfg.model.occupancy_resolution = 16
     cfg.train.iters, cfg.train.batch_rays, cfg.train.log_every = 6, 64, 2
     cfg.train.sync_every, cfg.train.eval_every_s, cfg.train.occupancy_every = 0, 0.0, 3

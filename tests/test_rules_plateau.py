@@ -47,14 +47,14 @@ def test_plateau_clock_restarts_when_the_lobe_drops_and_when_its_fade_ends(drop)
         a.on_test_eval(wall, {"test_psnr": v, "wall_s": float(wall)})
     if drop:
         for step in (100, 200, 300):
-            a.after_step(step, fake_out(share=0.0), losses())
+            a.after_step(step, fake_out(share=0.0), losses(), check=True)
         assert not rs.specular
     for wall, v in seq[2:]:
         a.on_test_eval(wall, {"test_psnr": v, "wall_s": float(wall)})
     assert a.plateau.plateaued != drop
     if drop:
         assert a.plateau.best == 33.0
-        a.after_step(300 + a.rc.lobe_fade_steps, fake_out(share=0.0), losses())   # fade over
+        a.after_step(300 + a.rc.lobe_fade_steps, fake_out(share=0.0), losses(), check=True)   # fade over
         assert rs.diffuse_metal_weight == 0.0 and a.plateau.best == -math.inf
         for wall in range(80, 170, 10):       # flat from 80 s; t - t_best >= t / 2 from 160 s on
             a.on_test_eval(wall, {"test_psnr": 33.0 + 0.1 * (wall % 20 == 0), "wall_s": float(wall)})

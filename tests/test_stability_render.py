@@ -22,6 +22,7 @@ import pytest
 import torch
 from torch import nn
 
+from nepf_core.fields.sdf_grid import GridSDFConfig
 from nepf_core.config import fast, tiny
 from nepf_core.losses import compute_losses
 from nepf_core.model import NePFModel
@@ -68,7 +69,7 @@ def _cfg(mode: str):
     if mode == "paper":
         return tiny()
     cfg = fast()
-    cfg.model.sdf_grid = {"base_resolution": 8, "max_resolution": 32}
+    cfg.model.sdf_grid = GridSDFConfig(base_resolution=8, max_resolution=32)
     cfg.model.occupancy_resolution = 16
     cfg.model.radiance.width = cfg.model.photon.width = cfg.model.material.width = 32
     return cfg

@@ -20,9 +20,10 @@ import numpy as np
 import pytest
 import torch
 
+from nepf_core.fields.sdf_grid import GridSDFConfig
 from nepf_core.config import fast, tiny
 from nepf_core.data.detect import load_scene
-from nepf_core.data.synth import PRESETS, make_scene
+from nepf_core.data.synth import SCENE_VARIANTS, make_scene
 from nepf_core.evaluate import render_view
 from nepf_core.train import fit, load_model
 from nepf_core.meshing import world_mesh
@@ -32,7 +33,7 @@ from nepf_core.rays import PixelSampler
 ITERS = 16
 # make_scene's stress variants; "mirror_grazing" is a near-mirror metal (roughness 0.02,
 # metallic 1) lit from 3.6 deg above the horizon, "single_view" keeps masks (all else masked out)
-SCENES = {name: dict(PRESETS[name]) for name in
+SCENES = {name: dict(SCENE_VARIANTS[name]) for name in
           ("mirror_grazing", "dark", "clipped", "tiny_world", "huge_world", "close", "far", "single_view")}
 SCENES["mirror_grazing"]["roughness"] = 0.02
 
@@ -134,7 +135,7 @@ def test_fast_fit_on_stiff_scene_stays_finite(name, tmp_path):
     scene = load_scene(tmp_path / "scene" / "dtu")
     cfg = fast()
     assert cfg.render.surface_refine and cfg.render.alpha_mode == "sample"
-    cfg.model.sdf_grid = {"base_resolution": 8, "max_resolution": 32}
+    cfg.model.sdf_grid = GridSDFConfig(base_resolution=8, max_resolution=32)
     cfg.model.occupancy_resolution = 16
     cfg.train.iters, cfg.train.batch_rays, cfg.train.log_every = ITERS, 64, 4
     cfg.train.sync_every, cfg.train.eval_every_s, cfg.train.occupancy_every = 0, 0.0, 4

@@ -48,7 +48,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from nepf_core.data.images import linear_to_srgb, to_uint8
+from nepf_core.color import linear_to_srgb
+from nepf_core.data.images import to_uint8
 from nepf_core.data.synth_render import Material, render_views
 from nepf_core.data.synth_shapes import MATERIALS, SHAPES
 
@@ -56,7 +57,7 @@ SCALE_MAT_RADIUS = 1.1
 ELEVATION_DEG = (-25.0, 65.0)
 
 #: Named stress variants (keyword overrides of :func:`make_scene`).
-PRESETS = {
+SCENE_VARIANTS = {
     "mirror_grazing": {"material": "mirror", "light_position": (4.0, -1.5, 0.25), "light_intensity": 60.0},
     "dark": {"exposure": "dark"},
     "clipped": {"exposure": "clipped"},
@@ -122,6 +123,11 @@ def _resolve_exposure(exposure, rgb: np.ndarray, alpha: np.ndarray) -> float:
     raise ValueError(f"exposure must be a number, 'dark' or 'clipped', got {exposure!r}")
 
 
+def _srgb8(linear: np.ndarray) -> np.ndarray:
+    """8-bit sRGB of linear values, encoded in float32 (what the PNGs hold)."""
+    return to_uint8(linear_to_srgb(np.asarray(linear, dtype=np.float32)))
+
+
 def _save_png(path: Path, arr: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(arr).save(path, compress_level=1)
@@ -163,10 +169,10 @@ def _write_blender(folder: Path, split: str, cams: list[dict], K: np.ndarray, w:
     for i, c in enumerate(cams):
         if masks:  # straight (un-premultiplied) colour + alpha
             straight = rgb_lin[i] / np.maximum(alpha[i], 1e-6)[..., None]
-            rgba = np.concatenate([to_uint8(linear_to_srgb(straight)), to_uint8(alpha[i])[..., None]], -1)
+            rgba = np.concatenate([_srgb8(straight), to_uint8(alpha[i])[..., None]], -1)
             _save_png(folder / split / f"r_{i}.png", rgba)
         else:
-            _save_png(folder / split / f"r_{i}.png", to_uint8(linear_to_srgb(rgb_lin[i])))
+            _save_png(folder / split / f"r_{i}.png", _srgb8(rgb_lin[i]))
         frames.append({"file_path": f"./{split}/r_{i}", "rotation": 0.0,
                        "transform_matrix": c["c2w_opengl_blender"].tolist()})
     meta = {"camera_angle_x": 2.0 * math.atan(0.5 * w / K[0, 0]), "fl_x": K[0, 0], "fl_y": K[1, 1],
@@ -256,7 +262,7 @@ def make_scene(out_dir, *, shape: str = "sphere", material: str = "diffuse", alb
     for split, folder in (("train", out / "dtu"), ("test", out / "gt" / "dtu_test")):
         if len(split_idx[split]):
             idx = split_idx[split]
-            rgb8 = to_uint8(linear_to_srgb(maps["rgb"][idx]))
+            rgb8 = _srgb8(maps["rgb"][idx])
             _write_dtu(folder, cams[split], scale_mat, rgb8, maps["alpha"][idx], masks)
             _write_blender(out / "blender", split, cams[split], K, w, h, maps["rgb"][idx],
                            maps["alpha"][idx], masks)
@@ -280,7 +286,7 @@ def make_scene(out_dir, *, shape: str = "sphere", material: str = "diffuse", alb
               "lights": [light], "ambient": ambient * exp}
     (gt / "lights.json").write_text(json.dumps(lights, indent=1))
     linear = maps["rgb"][maps["alpha"] > 0.99]
-    fg8 = to_uint8(linear_to_srgb(linear)) if linear.size else np.zeros((0, 3), np.uint8)
+    fg8 = _srgb8(linear) if linear.size else np.zeros((0, 3), np.uint8)
 
     def cam_json(split):
         return [{"index": i, "width": w, "height": h, **{k: v.tolist() for k, v in c.items()},
@@ -305,7 +311,7 @@ def make_scene(out_dir, *, shape: str = "sphere", material: str = "diffuse", alb
                    "png_encoding": "sRGB OETF, 8 bit, values clipped to [0,1]"},
         "stats": {"linear_max": float(maps["rgb"].max()),
                   "frac_fg_pixels_clipped": float((linear.max(-1) >= 1.0).mean()) if linear.size else 0.0,
-                  "png_max": int(to_uint8(linear_to_srgb(maps["rgb"])).max()),
+                  "png_max": int(_srgb8(maps["rgb"]).max()),
                   "png_median_fg": float(np.median(fg8.max(-1))) if fg8.size else 0.0},
         "timing_s": {"total": time.time() - t_start},
     }
@@ -330,7 +336,7 @@ def _exposure(v: str):
 
 def _add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("out", help="output folder")
-    p.add_argument("--preset", action="append", default=[], choices=sorted(PRESETS),
+    p.add_argument("--preset", action="append", default=[], choices=sorted(SCENE_VARIANTS),
                    help="stress variant (repeatable); explicit options override it")
     p.add_argument("--shape", choices=sorted(SHAPES))
     p.add_argument("--material", choices=sorted(MATERIALS))
@@ -359,7 +365,7 @@ def run_make_scene(args: argparse.Namespace) -> int:
     """Run ``make-scene`` from parsed arguments; prints a one-line summary, returns 0."""
     kw = {}
     for pr in args.preset:
-        kw.update(PRESETS[pr])
+        kw.update(SCENE_VARIANTS[pr])
     skip = {"out", "preset", "func", "command"}
     kw.update({k: v for k, v in vars(args).items() if k not in skip and v is not None})
     info = make_scene(args.out, **kw)

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from nepf_core.reframe import object_world_from_norm, reframe_scene
+from nepf_core.render.surface import SurfaceRequest
 from nepf_core.train.decisions import Decision, DecisionLog
 from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.rules.empty_rays import EmptyRayRule
@@ -37,6 +38,7 @@ class Adaptivity:
         self.empty_rays = EmptyRayRule(rc)
         self.occupied_fraction: float | None = None
         self.cams: torch.Tensor | None = None
+        self._check = False   # the render of this step is a specular check (request -> after_step)
 
     @property
     def decisions(self) -> list[dict]:
@@ -101,16 +103,21 @@ class Adaptivity:
         self.record(decision)
         return kept, left_out
 
-    def wants_evidence(self, step: int) -> bool:
-        """Whether step ``step`` is a specular check (render the surface extras for it)."""
-        return self.specular.wants_evidence(step)
+    def request(self, step: int) -> SurfaceRequest:
+        """What the rules read from the render of step ``step`` (before it): the lobe split at the
+        specular rule's checks (every ``check_every`` steps)."""
+        self._check = self.specular.wants_evidence(step)
+        return SurfaceRequest(lobe_split=self._check)
 
-    def observe(self, step: int, model, out, rays) -> None:
-        """A check's evidence on the lobe (call before :meth:`after_step`)."""
-        self.specular.observe(step, model, out, rays, self.cams, self.run_state.specular)
-
-    def after_step(self, step: int, out, losses: dict) -> None:
-        """The per-step rules, in order: eikonal EMA, the lobe's fade, Hessian, lobe decision."""
+    def after_step(self, step: int, out, losses: dict, *, model=None, rays=None, check: bool | None = None) -> None:
+        """The per-step rules once the optimiser step has made the step count ``step``, in order: the
+        check's lobe evidence (from ``model``, ``out`` and its ``rays``, when given), eikonal EMA, the
+        lobe's fade, Hessian, lobe decision. ``check``: whether ``out`` is a specular check's render
+        (None: whether :meth:`request` asked for one)."""
+        check = self._check if check is None else check
+        self._check = False
+        if check and rays is not None:
+            self.specular.observe(step, model, out, rays, self.cams, self.run_state.specular)
         eik = float(losses["loss_eik"].detach()) if "loss_eik" in losses else 0.0
         self.hessian.observe(eik)
         if not self.rc.enabled:
@@ -122,8 +129,9 @@ class Adaptivity:
             if w <= 0.0:
                 self.plateau.restart()   # the fade is over: the model from here on is the one to judge
         self.record(self.hessian.decide(step, rs.w_hessian))
-        for d in self.specular.decide(step, out, rs.specular):
-            self.record(d)
+        if check:
+            for d in self.specular.decide(step, out, rs.specular):
+                self.record(d)
 
     def on_test_eval(self, step: int, rec: dict, progress: float | None = None) -> None:
         self.record(self.plateau.on_test_eval(step, rec, progress))

@@ -33,6 +33,7 @@ import math
 
 from nepf_core.train.decisions import Decision
 from nepf_core.train.rules.config import RuleConfig
+from nepf_core.render.neus import foreground
 from nepf_core.train.rules.lobe_evidence import batch_lobe_evidence, lit_view_spread
 
 
@@ -87,16 +88,16 @@ class SpecularRule:
         return max(0.0, 1.0 - (step - self.fade_start) / max(self.rc.lobe_fade_steps, 1))
 
     def decide(self, step: int, out, specular_on: bool) -> list[Decision]:
-        """At a check with surface statistics in ``out.surf``: the lobe decision (and the albedo
-        flatness record that goes with it), or nothing."""
+        """At a check (``out.lobe``: the render's :class:`~nepf_core.render.surface.LobeSplit`): the
+        lobe decision (and the albedo flatness record that goes with it), or nothing."""
         rc = self.rc
-        if "specular" not in out.surf or step < min(rc.warmup_frac * rc.iters, rc.warmup_max_steps):
+        if out.lobe is None or step < min(rc.warmup_frac * rc.iters, rc.warmup_max_steps):
             return []
-        surf_w = out.weight_sum.detach() > 0.5
+        surf_w = foreground(out.weight_sum)
         if surf_w.sum() < 8:
             return []
-        metal = float(out.surf["metallic"].detach()[surf_w].mean())
-        share = float(out.surf["specular"][surf_w].mean())
+        metal = float(out.surface.metallic.detach()[surf_w].mean())
+        share = float(out.lobe.share[surf_w].mean())
         spread = self.view_spread
         self.stats = {"surf_metallic": metal, "specular_share": share}
         if self.fit_err is not None:
