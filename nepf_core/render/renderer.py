@@ -78,9 +78,8 @@ class RenderConfig:
     """Training only: on rays whose target colour is unlit (``RayBatch.unlit``, set by fit()
     from the data), the colour error of L_vol / L_surf does not reach the albedo; only the
     photon field (direction, intensity) and geometry may explain the darkness. A pixel that
-    received no light carries no information on the albedo, and letting it drive the albedo
-    to 0 is what made the recovered albedo black in shadows (docs/FAST.md, "Albedo in
-    unlit regions")."""
+    received no light carries no information on the albedo; letting its error reach the albedo
+    drives the albedo to 0 in shadows (docs/FAST.md, "Albedo in unlit regions")."""
     albedo_smooth_sigma: float = 0.0
     """Training only, > 0: also query the material network at ``x* + N(0, sigma^2 I)`` next
     to each surface point (:attr:`Surface.jitter`) for the smoothness priors

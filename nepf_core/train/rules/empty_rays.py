@@ -13,9 +13,8 @@ shows the background: its colour is ``C_bg`` (its SDF weights sum to at most ~e^
 misses left out of the SDF batch are then returned too (at most as many as the SDF batch holds,
 with importance weights), and the loop renders them through the background volume alone
 (:func:`nepf_core.render.renderer.render_background_only`), so the background pixels train the
-background at the cost of their background samples only. Without that, the wall
-behind a mounted object (half the pixels of the fox) trained about ``miss_keep`` as often as
-the object did.
+background at the cost of their background samples only: the background pixels (the wall
+behind a mounted object, half the pixels of the fox) train as often as the object's.
 
 Only with adaptivity on and an occupancy grid that has been refreshed. The NeuS sampler spreads
 a kept ray's samples over its whole chord, so a surface outside the occupied cells is still
