@@ -12,6 +12,7 @@ from nepf_core.fields.sdf_mlp import MLPSDFConfig
 from nepf_core.losses import LossConfig
 from nepf_core.model import ModelConfig
 from nepf_core.render.renderer import RenderConfig
+from nepf_core.train.rules.config import RuleConfig
 
 
 @dataclass
@@ -71,17 +72,12 @@ class TrainConfig:
     """Let fit() leave out what the scene does not need (:mod:`nepf_core.train.rules`: drop the
     GGX lobe, switch the Hessian term, stop at a plateau, leave empty rays out; every decision in
     report.json). Off in ``paper`` (the paper trains every term for its whole schedule)."""
-    plateau_patience: int = 3
-    """Early stop after this many held-out evaluations without 0.1 dB gain (only when the
-    iteration count was not fixed by the user)..."""
-    plateau_window: int = 3
-    """The plateau rule compares the mean of the last this-many evaluations (1: single ones)."""
-    plateau_min_frac: float = 0.5
-    """...and only when those evaluations also span this share of the training time so far
-    (``t - t_best >= plateau_min_frac * t``)."""
-    plateau_cooldown_frac: float = 0.25
-    """After the plateau rule fires, anneal the learning rate to ``lr_alpha`` over this share of
-    the training time so far, then stop (0: stop at once)."""
+
+
+_MOVED = (("unlit_rel_threshold", "render", "train"), ("plateau_patience", "train", "rules"),
+          ("plateau_window", "train", "rules"), ("plateau_min_frac", "train", "rules"),
+          ("plateau_cooldown_frac", "train", "rules"))
+"""``(key, old section, new section)`` of fields that moved (config.json of older runs)."""
 
 
 @dataclass
@@ -93,6 +89,8 @@ class NePFConfig:
     render: RenderConfig = field(default_factory=RenderConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    rules: RuleConfig = field(default_factory=RuleConfig)
+    """The adaptivity rules' constants (used with ``train.adaptive``)."""
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -109,11 +107,13 @@ class NePFConfig:
     @staticmethod
     def from_dict(d: dict) -> "NePFConfig":
         """The config of a ``config.json``. Keys no field has (removed since) are ignored; a key that
-        moved is read from where older runs wrote it (``render.unlit_rel_threshold``)."""
-        render, train = dict(d.get("render", {})), dict(d.get("train", {}))
-        if "unlit_rel_threshold" in render and "unlit_rel_threshold" not in train:
-            train["unlit_rel_threshold"] = render["unlit_rel_threshold"]
-        d = {**d, "render": render, "train": train}
+        moved is read from where older runs wrote it (``render.unlit_rel_threshold``,
+        ``train.plateau_*``)."""
+        sections = {k: dict(d.get(k, {})) for k in ("render", "train", "rules")}
+        for key, old, new in _MOVED:
+            if key in sections[old] and key not in sections[new]:
+                sections[new][key] = sections[old][key]
+        d = {**d, **sections}
 
         def build(cls, data):
             kwargs = {}

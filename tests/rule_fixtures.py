@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from types import SimpleNamespace
 
@@ -9,7 +10,6 @@ import torch
 
 from nepf_core.config import fast, tiny
 from nepf_core.train.adaptivity import Adaptivity
-from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.run_state import RunState
 
 
@@ -17,14 +17,14 @@ def make_adapt(*, enabled=True, iters_fixed=True, iters=1000, w_hessian=5e-4, pl
                **rules):
     """``(Adaptivity, RunState)`` on ``preset`` (``tiny``); the plateau tests hand-work single
     evaluations (``plateau_window=1``) unless they test the running mean. ``rules``: RuleConfig
-    overrides."""
+    overrides (the config's ``rules`` section)."""
     cfg = preset()
     cfg.train.iters = iters
     cfg.train.adaptive = enabled
     cfg.loss.w_hessian = w_hessian
-    cfg.train.plateau_window = plateau_window
+    cfg.rules = dataclasses.replace(cfg.rules, plateau_window=plateau_window, **rules)
     rs = RunState.from_config(cfg)
-    return Adaptivity(RuleConfig.from_config(cfg, iters_fixed=iters_fixed, **rules), rs), rs
+    return Adaptivity(cfg, rs, iters_fixed=iters_fixed), rs
 
 
 def resumed(a: Adaptivity, rs: RunState, **kw):

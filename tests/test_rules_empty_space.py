@@ -3,6 +3,7 @@ rays that meet no occupied cell, their importance weights), with two short real 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from types import SimpleNamespace
@@ -13,7 +14,6 @@ import torch
 
 from nepf_core.fields.sdf_grid import GridSDFConfig
 from nepf_core.train.adaptivity import Adaptivity
-from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.run_state import RunState
 from rule_fixtures import fast, make_adapt, named, records, tiny
 
@@ -62,7 +62,7 @@ def test_mask_loss_off_when_its_weight_is_zero_and_occupancy_recorded():
     cfg = fast()
     cfg.loss.w_mask = 0.0
     rs = RunState.from_config(cfg)
-    a = Adaptivity(RuleConfig.from_config(cfg, iters_fixed=True), rs)
+    a = Adaptivity(cfg, rs, iters_fixed=True)
     a.before_training(_scene(True))
     assert rs.use_mask_loss is False and rs.background is False
     (e,) = named(a, "empty_space_skipping")
@@ -155,7 +155,8 @@ def _sphere_model_and_rays(n_hit=24, n_miss=40):
 
 def _adapt(cfg, enabled=True, **rules):
     cfg.train.adaptive = enabled
-    return Adaptivity(RuleConfig.from_config(cfg, iters_fixed=False, **rules), RunState.from_config(cfg))
+    cfg.rules = dataclasses.replace(cfg.rules, **rules)
+    return Adaptivity(cfg, RunState.from_config(cfg), iters_fixed=False)
 
 
 def test_rays_that_meet_no_occupied_cell_leave_the_batch():

@@ -1,7 +1,7 @@
 """Adaptivity: leaving out what a scene does not need, every decision recorded.
 
 :class:`Adaptivity` runs the rules of :mod:`nepf_core.train.rules` (each reads the frozen
-:class:`~nepf_core.train.rules.config.RuleConfig` and returns decisions) and applies their
+:class:`~nepf_core.train.rules.config.RuleConfig`, the config's ``rules`` section, and returns decisions) and applies their
 decisions to the :class:`~nepf_core.train.run_state.RunState`, the only place where the
 switches in effect live. It also keeps the statistics that go to ``metrics.jsonl`` and
 ``report.json``.
@@ -9,13 +9,14 @@ switches in effect live. It also keeps the statistics that go to ``metrics.jsonl
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import torch
 
 from nepf_core.reframe import object_world_from_norm, reframe_scene
 from nepf_core.render.surface import SurfaceRequest
 from nepf_core.train.decisions import Decision, DecisionLog
-from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.rules.empty_rays import EmptyRayRule
 from nepf_core.train.rules.hessian import HessianRule
 from nepf_core.train.rules.masks import decide_masks, decide_object_region, lit_outside_masks
@@ -28,14 +29,18 @@ from nepf_core.train.run_state import RunState
 class Adaptivity:
     """The rules of one run, the decisions they took, and the run state they act on."""
 
-    def __init__(self, rc: RuleConfig, run_state: RunState) -> None:
-        self.rc = rc
+    def __init__(self, cfg, run_state: RunState, *, iters_fixed: bool = True) -> None:
+        """``cfg``: the run's :class:`~nepf_core.config.NePFConfig` (a private copy is kept, so no
+        rule sees a later edit); ``iters_fixed``: the user fixed the iteration count (no plateau stop)."""
+        self.cfg = cfg = copy.deepcopy(cfg)
+        self.rc = cfg.rules
+        self.enabled = bool(cfg.train.adaptive)
         self.run_state = run_state
         self.log = DecisionLog()
-        self.specular = SpecularRule(rc)
-        self.hessian = HessianRule(rc)
-        self.plateau = PlateauRule(rc)
-        self.empty_rays = EmptyRayRule(rc)
+        self.specular = SpecularRule(cfg)
+        self.hessian = HessianRule(cfg)
+        self.plateau = PlateauRule(cfg, iters_fixed)
+        self.empty_rays = EmptyRayRule(cfg)
         self.occupied_fraction: float | None = None
         self.cams: torch.Tensor | None = None
         self._check = False   # the render of this step is a specular check (request -> after_step)
@@ -60,7 +65,7 @@ class Adaptivity:
                 rs.diffuse_metal_weight = 1.0   # the same image at the drop, then the fade
             self.plateau.restart()              # the shading model changed
         elif decision.name == "hessian_loss":
-            rs.w_hessian = self.rc.w_hessian if decision.value else 0.0
+            rs.w_hessian = self.cfg.loss.w_hessian if decision.value else 0.0
 
     # -- before training --
     def before_training(self, scene):
@@ -72,7 +77,7 @@ class Adaptivity:
         self.surface_points = None
         """Without masks: the points triangulated in the object region ``[P, 3]`` (or None)."""
         lit = lit_outside_masks(scene.images, scene.masks) if scene.has_masks else 0.0
-        use, background, decisions = decide_masks(scene.has_masks, self.rc.w_mask, lit)
+        use, background, decisions = decide_masks(scene.has_masks, self.cfg.loss.w_mask, lit)
         self.run_state.use_mask_loss, self.run_state.background = use, background
         if background and not scene.has_masks:
             self.run_state.object_halfspace, region, self.surface_points, frame = decide_object_region(scene)
@@ -83,13 +88,13 @@ class Adaptivity:
         self.cams = None if c2w is None else torch.as_tensor(np.asarray(c2w)[:, :3, 3], dtype=torch.float32)
         for d in decisions:
             self.record(d)
-        self.record(empty_space_decision(self.rc))
-        if not self.rc.enabled:
+        self.record(empty_space_decision(self.cfg))
+        if not self.enabled:
             self.record(Decision("adaptive", False, "adaptivity disabled: every term stays on"))
         return scene
 
     def start_occupancy(self, model, scene) -> None:
-        self.record(carve_visual_hull(model, scene, self.rc))
+        self.record(carve_visual_hull(model, scene, self.cfg))
 
     # -- during training --
     def refresh_occupancy(self, model, step: int) -> None:
@@ -120,7 +125,7 @@ class Adaptivity:
             self.specular.observe(step, model, out, rays, self.cams, self.run_state.specular)
         eik = float(losses["loss_eik"].detach()) if "loss_eik" in losses else 0.0
         self.hessian.observe(eik)
-        if not self.rc.enabled:
+        if not self.enabled:
             return
         rs = self.run_state
         w = self.specular.fade_weight(step, rs.specular, rs.diffuse_metal_weight)
@@ -167,7 +172,7 @@ class Adaptivity:
         """``report.json``: status, decisions, the final switches and the run state, empty-space
         statistics."""
         rs = self.run_state
-        if self.rc.enabled and rs.specular and self.specular.stats and not self.log.has("specular_lobe"):
+        if self.enabled and rs.specular and self.specular.stats and not self.log.has("specular_lobe"):
             self.log.add(self.specular.kept_report(step))   # a record only: nothing changes
         rep = {"status": status, "step": step, "nonfinite_steps": nonfinite, "decisions": self.log.records,
                "final_switches": {"specular": rs.specular, "mask_loss": rs.use_mask_loss,

@@ -41,7 +41,6 @@ from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
 from nepf_core.train.hooks import TrainHooks
 from nepf_core.train.metrics_log import MetricsLog, plot_error_vs_time, write_json_atomic
 from nepf_core.train.result import FitError, FitResult
-from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.run_state import RunState
 from nepf_core.train.schedule import (coarse_to_fine, cos_anneal_ratio, progress_fraction, run_eta,
                                      scheduled_lr_factor)
@@ -66,7 +65,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
         targets: held-out views / GT mesh / GT albedo for error-against-time records.
         iters_fixed: the user fixed the iteration count (disables plateau early stop).
         hooks: observers of steps, evaluations and checkpoints.
-        rules: overrides of the adaptivity constants (:class:`~nepf_core.train.rules.config.RuleConfig`
+        rules: overrides of the ``rules`` section (:class:`~nepf_core.train.rules.config.RuleConfig`
             field names; tests and probes).
     Returns:
         :class:`FitResult` (status ``succeeded``, ``cancelled`` or ``stopped_early``).
@@ -97,7 +96,8 @@ class TrainingRun:
 
         cfg.check()
         self.run_state = RunState.from_config(cfg)
-        self.adapt = Adaptivity(RuleConfig.from_config(cfg, iters_fixed=iters_fixed, **(rules or {})), self.run_state)
+        rule_cfg = dataclasses.replace(cfg, rules=dataclasses.replace(cfg.rules, **(rules or {})))
+        self.adapt = Adaptivity(rule_cfg, self.run_state, iters_fixed=iters_fixed)
         scene = self.scene = self.adapt.before_training(scene)   # maybe in the object's frame
         # the cameras' mean up vector in the input's world: the export's up axis (nepf_core.up_axis)
         self.camera_up = camera_up_world(scene.c2w, scene.world_from_norm)

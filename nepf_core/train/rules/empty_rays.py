@@ -26,12 +26,12 @@ from __future__ import annotations
 import torch
 
 from nepf_core.train.decisions import Decision
-from nepf_core.train.rules.config import RuleConfig
 
 
 class EmptyRayRule:
-    def __init__(self, rc: RuleConfig) -> None:
-        self.rc = rc
+    def __init__(self, cfg) -> None:
+        """``cfg``: the run's :class:`~nepf_core.config.NePFConfig` (``rules.miss_keep``, ``train.adaptive``)."""
+        self.cfg, self.rc = cfg, cfg.rules
         self.last: float | None = None
         """Share of the drawn rays left out at the last step (logged as ``rays_left_out``)."""
         self.total, self.count = 0.0, 0
@@ -48,7 +48,7 @@ class EmptyRayRule:
         background); ``first``: no ``empty_rays`` decision was recorded yet
         (it is recorded once)."""
         occ = getattr(model, "occupancy", None)
-        if not self.rc.enabled or occ is None or int(occ.n_updates) == 0:
+        if not self.cfg.train.adaptive or occ is None or int(occ.n_updates) == 0:
             return rays, None, None
         from nepf_core.render.sampling import object_segment
         near, far, _, _ = object_segment(rays.origins, rays.directions, model.cfg.object_halfspace)
