@@ -242,7 +242,8 @@ def plan_runs(args) -> list[dict]:
 
 
 def _metrics_summary(run_dir: Path, evals: list[dict] | None = None) -> dict:
-    """Curves and counters from ``RUN/metrics.jsonl``; test ``wall_s`` corrected by the eval clock."""
+    """Curves and counters from ``RUN/metrics.jsonl``; each test record gets its evaluation's
+    duration ``eval_s`` from the eval clock (:class:`bench.child._EvalClock`)."""
     from nepf_core.plots import read_metrics
     path = run_dir / "metrics.jsonl"
     recs = read_metrics(path) if path.exists() else []
@@ -252,8 +253,6 @@ def _metrics_summary(run_dir: Path, evals: list[dict] | None = None) -> dict:
     for t in tests:
         e = clock.get(t.get("step"))
         if e is not None:
-            t["wall_s_logged"] = t.get("wall_s")
-            t["wall_s"] = e["train_wall_s"]
             t["eval_s"] = e.get("eval_s")
     train = [r for r in recs if r.get("kind", "train") == "train"]
     out = {"test_curve": tests, "n_train_records": len(train)}
