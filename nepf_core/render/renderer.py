@@ -166,7 +166,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     P = sw.pts.shape[0]
     weight_sum = sw.weights.sum(-1)
     eik_w = None if rays.weight is None else rays.weight[sw.eikonal_ray].to(sw.eikonal.dtype)
-    normals = sw.grad / sw.grad.norm(dim=-1).clamp_min(1e-8)[:, None]
+    normals = sw.grad / sw.grad_norm.clamp_min(1e-8)[:, None]
     flat_max = sw.flat_max
     unlit_ray = rays.unlit if (train and rays.unlit is not None) else None
 

@@ -46,6 +46,9 @@ class SampleWeights:
     """``[P, F]`` the SDF network's features at ``pts``."""
     grad: Tensor
     """``[P, 3]`` ``grad f`` (sample mode: zero where it was not taken)."""
+    grad_norm: Tensor
+    """``[P]`` ``|grad f|`` (one node for the eikonal and the normals: the gradients of both meet
+    there, in the order they always have)."""
     weights: Tensor
     """``[R, S]`` the NeuS weights ``w_i``."""
     idx_max: Tensor
@@ -100,7 +103,8 @@ def weights_sample_mode(model, o: Tensor, d: Tensor, z: Tensor, inv_s: Tensor, *
     inside_sub = pts[gidx].norm(dim=-1) < 1.0
     eikonal = (g_sub.norm(dim=-1) - 1.0).abs()[inside_sub]
     eik_ray = torch.div(gidx, S, rounding_mode="floor")[inside_sub]
-    return SampleWeights(z=z, t_eval=z, pts=pts, dirs=_expand(d, S), sdf=f, feat=feat, grad=grad, weights=weights,
+    return SampleWeights(z=z, t_eval=z, pts=pts, dirs=_expand(d, S), sdf=f, feat=feat, grad=grad,
+                         grad_norm=grad.norm(dim=-1), weights=weights,
                          idx_max=idx_max, w_max=w_max, eikonal=eikonal, eikonal_ray=eik_ray,
                          hessian=o.new_zeros(0), inv_s=inv_s)
 
@@ -133,8 +137,9 @@ def weights_midpoint_mode(model, o: Tensor, d: Tensor, z: Tensor, inv_s: Tensor,
     weights = weights_from_alpha(alpha_from_sdf(sdf.reshape(R, S), cos.reshape(R, S), dists, inv_s))
     idx_max, w_max = max_weight_index(weights)
     inside = pts.norm(dim=-1) < 1.0
-    eikonal = (grad.norm(dim=-1) - 1.0).abs()[inside]
+    gnorm = grad.norm(dim=-1)
+    eikonal = (gnorm - 1.0).abs()[inside]
     eik_ray = torch.div(torch.arange(pts.shape[0], device=o.device), S, rounding_mode="floor")[inside]
     return SampleWeights(z=z, t_eval=mid, pts=pts, dirs=dirs, sdf=sdf.reshape(R, S), feat=feat, grad=grad,
-                         weights=weights, idx_max=idx_max, w_max=w_max, eikonal=eikonal, eikonal_ray=eik_ray,
+                         grad_norm=gnorm, weights=weights, idx_max=idx_max, w_max=w_max, eikonal=eikonal, eikonal_ray=eik_ray,
                          hessian=hess, inv_s=inv_s)
