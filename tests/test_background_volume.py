@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from nepf_core.fields.background import BackgroundConfig, BackgroundVolume, contract, sphere_exit
-from nepf_core.losses import LossConfig, compute_losses
+from nepf_core.losses import LossConfig, compute_losses, total_loss
 from nepf_core.train.rules.masks import decide_masks, lit_outside_masks
 
 from loss_fixtures import render_output
