@@ -219,8 +219,8 @@ def test_kept_misses_carry_importance_weights_and_the_mask_loss_stays_unbiased()
 def test_eikonal_mean_weighs_each_sample_by_its_rays_importance_weight():
     """A ray kept with weight 3 counts like three copies of it, in the eikonal mean as in the
     mask loss, so thinning a batch does not turn the eikonal into a near-surface term."""
-    from nepf_core.losses import compute_losses, weighted_mean
-    from nepf_core.render.renderer import render_rays
+    from nepf_core.losses import compute_losses, needs_lobe_split, weighted_mean
+    from nepf_core.render.renderer import SurfaceRequest, render_rays
     assert float(weighted_mean(torch.tensor([1.0, 2.0, 3.0]), torch.tensor([1.0, 1.0, 2.0]))) == pytest.approx(2.25)
     assert float(weighted_mean(torch.tensor([1.0, 2.0, 3.0]), None)) == pytest.approx(2.0)
     cfg, model, rays = _sphere_model_and_rays(n_hit=3, n_miss=3)
@@ -236,7 +236,9 @@ def test_eikonal_mean_weighs_each_sample_by_its_rays_importance_weight():
     weighted.weight = reps.float()
 
     def terms(batch):
-        L = compute_losses(render_rays(model, batch, cfg.render, train=True), batch, cfg.loss, use_mask=True)
+        out = render_rays(model, batch, cfg.render, train=True,
+                          request=SurfaceRequest(lobe_split=needs_lobe_split(cfg.loss)))
+        L = compute_losses(out, batch, cfg.loss, use_mask=True)
         return {k: float(v.detach()) for k, v in L.items()}
     lw, ld, lu = terms(weighted), terms(dup), terms(rays.index(torch.arange(6)))
     assert ld["loss_eik"] > 1e-3
@@ -252,9 +254,9 @@ def test_left_out_misses_train_the_background_as_if_rendered_whole():
     there are more misses than SDF rays, a subset as large as the SDF batch stands for them with
     importance weights, and the losses are right in expectation. Without them, the background
     pixels would train only through the ``miss_keep`` share."""
-    from nepf_core.losses import compute_losses
+    from nepf_core.losses import compute_losses, needs_lobe_split
     from nepf_core.model import NePFModel
-    from nepf_core.render.renderer import render_background_only, render_rays
+    from nepf_core.render.renderer import SurfaceRequest, render_background_only, render_rays
 
     def setup(n_hit, n_miss):
         cfg, _, rays = _sphere_model_and_rays(n_hit=n_hit, n_miss=n_miss)
@@ -266,7 +268,8 @@ def test_left_out_misses_train_the_background_as_if_rendered_whole():
         return cfg, model, rays, _adapt(cfg, miss_keep=0.0)
 
     def losses(cfg, model, batch, **kw):
-        out = render_rays(model, batch, cfg.render, train=True)
+        out = render_rays(model, batch, cfg.render, train=True,
+                          request=SurfaceRequest(lobe_split=needs_lobe_split(cfg.loss)))
         return compute_losses(out, batch, cfg.loss, use_mask=False, background=True, **kw)
 
     cfg, model, rays, a = setup(24, 16)
