@@ -173,7 +173,8 @@ def test_distorted_colmap_models_are_undistorted_at_load(tmp_path, model, params
 
     raw = ref.images.copy()
     for i, name in enumerate(scene.names):   # negative control: the distorted files read as they are
-        from nepf_core.data.images import read_image, srgb_to_linear
+        from nepf_core.color import srgb_to_linear
+        from nepf_core.data.images import read_image
         raw[i] = srgb_to_linear(read_image(out / name))
     assert err(scene.images) < 0.01 and err(scene.images) < 0.6 * err(raw), (err(scene.images), err(raw))
 

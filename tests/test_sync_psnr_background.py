@@ -28,7 +28,7 @@ def test_surface_psnr_composites_the_background(monkeypatch):
         zero = torch.zeros(n, 3)
         return RenderOutput(rgb_r=rb.rgb, rgb_vol=rb.rgb, rgb_surf=torch.full((n, 3), 0.9), weight_sum=torch.zeros(n),
                             w_max=torch.zeros(n), depth=torch.zeros(n), eikonal=torch.zeros(0),
-                            hessian=torch.zeros(0), background=rb.rgb.clone())
+                            hessian=torch.zeros(0), surface=None, background=rb.rgb.clone())
     monkeypatch.setattr(evaluation, "render_rays", fake_render)
     scene = _scene()
     sampler = PixelSampler(scene, torch.device("cpu"))

@@ -1,4 +1,6 @@
-"""Finite-difference SDF gradients (normals / eikonal) for grid SDFs.
+"""Finite-difference SDF gradients (normals / eikonal), the one home of the stencils: central
+(6 points) and tetrahedral (4 points). Used for grid SDFs, the Hessian's ``gradient="fd"``
+(:mod:`nepf_core.fields.gradients`) and the lobe rule's view spread.
 
 Grid SDFs are looked up trilinearly (:mod:`nepf_core.fields.trilinear`), whose table gradient
 is scattered outside autograd: an eikonal loss through ``autograd.grad(create_graph=True)``

@@ -8,9 +8,9 @@ import numpy as np
 import torch
 
 from nepf_core.data.scene import Scene
-from nepf_core.evaluate import SSIM_BORDER, albedo_psnr_aligned, psnr, render_view, srgb_np, ssim
+from nepf_core.color import linear_to_srgb
+from nepf_core.evaluate import SSIM_BORDER, albedo_psnr_aligned, psnr, render_view, ssim
 from nepf_core.holdout_preview import write_holdout_preview
-from nepf_core.losses import srgb_encode
 from nepf_core.model import ModelFieldQuery
 from nepf_core.rays import PixelSampler, unlit_threshold
 from nepf_core.render.renderer import Shading, render_rays
@@ -56,11 +56,11 @@ def sync_psnr(model, sampler: PixelSampler, cfg, views: list[int], n_rays: int, 
         outs["surf"].append(surf.detach())
         outs["vol"].append(o.rgb_vol.detach())
     model.train(was)
-    gt = srgb_encode(rays.rgb).cpu().numpy()
+    gt = linear_to_srgb(rays.rgb).cpu().numpy()
     m = None if rays.mask is None else rays.mask.cpu().numpy() > 0.5
     res = {}
     for k, v in outs.items():
-        pred = srgb_encode(torch.cat(v)).cpu().numpy()
+        pred = linear_to_srgb(torch.cat(v)).cpu().numpy()
         res[f"psnr_{k}"] = psnr(pred, gt, m)
     return res
 
@@ -104,11 +104,11 @@ def evaluate_test(model, cfg, targets: EvalTargets, device, world_from_norm: np.
         r = render_view(model, sampler, k, cfg.render, stride=stride, shading=shading)
         preds.append(r["pbr"]); rads.append(r["radiance"]); albs.append(r["albedo"])
     gt = ts.images[:, ::stride, ::stride]
-    gt_srgb = srgb_np(gt)
+    gt_srgb = linear_to_srgb(gt)
     m = None if ts.masks is None else ts.masks[:, ::stride, ::stride]
     rec = {"test_views": ts.n_views}
     for key, colour in (("test_psnr", preds), ("test_psnr_radiance", rads)):
-        c = srgb_np(np.stack(colour))
+        c = linear_to_srgb(np.stack(colour))
         rec[key + "_full"] = psnr(c, gt_srgb)
         rec[key] = rec[key + "_full"] if m is None else psnr(c, gt_srgb, m)
         if key == "test_psnr":
@@ -121,7 +121,7 @@ def evaluate_test(model, cfg, targets: EvalTargets, device, world_from_norm: np.
         rec["albedo_psnr"], _ = albedo_psnr_aligned(alb, ga, m)
         # the same metric on the observable pixels only: a pixel the light never reaches carries
         # no albedo information in any view (fixed light), so there any albedo fits the images
-        lit = (m > 0.5) & (gt.max(-1) >= unlit_threshold(ts.images, ts.masks, cfg.render.unlit_rel_threshold))
+        lit = (m > 0.5) & (gt.max(-1) >= unlit_threshold(ts.images, ts.masks, cfg.train.unlit_rel_threshold))
         if lit.any():
             rec["albedo_psnr_lit"], _ = albedo_psnr_aligned(alb, ga, lit)
             rec["lit_fraction"] = float(lit.sum() / max((m > 0.5).sum(), 1))
