@@ -291,3 +291,53 @@ def test_an_object_larger_than_the_load_frame_gets_a_frame_that_encloses_it(tmp_
     assert np.allclose(ck["extra"]["world_from_norm"], expected, atol=1e-6)
     assert [r for r in map(json.loads, (tmp_path / "run" / "metrics.jsonl").read_text().splitlines())
             if r.get("kind") == "test"]
+
+
+def render_ball_all_round(n_views: int = 32, size: int = 128, distance: float = 2.5) -> Scene:
+    """The textured ball alone (no wall, black behind it), seen by look-at cameras all round it
+    (a Fibonacci sphere of directions): a capture without a support plane."""
+    k = np.arange(n_views) + 0.5
+    z = 1.0 - 2.0 * k / n_views
+    r = np.sqrt(1.0 - z * z)
+    phi = k * math.pi * (3.0 - math.sqrt(5.0))
+    eyes = BALL_CENTRE + distance * np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+    c2w = np.stack([look_at(e, BALL_CENTRE, up=(0.0, 1.0, 0.0) if abs(zz) < 0.9 else (1.0, 0.0, 0.0))
+                    for e, zz in zip(eyes, z)])
+    f = 0.5 * size / math.tan(math.radians(40 / 2))
+    K = np.array([[f, 0, size / 2], [0, f, size / 2], [0, 0, 1]])
+    v, u = np.meshgrid(np.arange(size) + 0.5, np.arange(size) + 0.5, indexing="ij")
+    images = []
+    for pose in c2w:
+        d = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], -1) @ np.linalg.inv(K).T @ pose[:3, :3].T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        oc = pose[:3, 3] - BALL_CENTRE
+        b = d @ oc
+        disc = b * b - (oc @ oc - BALL_RADIUS ** 2)
+        t = np.where(disc > 0, -b - np.sqrt(np.clip(disc, 0, None)), np.inf)
+        g = np.where(np.isfinite(t), solid_texture(pose[:3, 3] + np.where(np.isfinite(t), t, 0)[:, None] * d), 0.0)
+        images.append(np.repeat(g.reshape(size, size, 1), 3, -1).astype(np.float32))
+    return Scene(images=np.stack(images), masks=None, intrinsics=np.repeat(K[None], n_views, 0).astype(np.float32),
+                 c2w=c2w.astype(np.float32), world_from_norm=np.eye(4), names=[f"{i}.png" for i in range(n_views)])
+
+
+@pytest.mark.parametrize("normalization", ["frustum", "scale_mat"])
+def test_without_a_support_a_guessed_frame_shrinks_to_the_points(normalization):
+    """All round, no support plane. A load frame guessed from the cameras (the frustum rule: here
+    the unit sphere is 2.5x the ball) gives way to the ball around the points, which holds the
+    whole ball and little more; a frame the data gave (DTU's scale_mat) stays."""
+    from nepf_core.train.rules.masks import decide_object_region
+
+    scene = render_ball_all_round()
+    scene.extras = {"normalization": normalization}
+    hs, decisions, points, frame = decide_object_region(scene)
+    assert hs is None
+    if normalization == "scale_mat":
+        assert frame is None and [d.name for d in decisions] == ["object_region"]
+        return
+    assert frame is not None and [d.name for d in decisions] == ["object_region", "object_frame"]
+    centre, radius = frame
+    g = np.random.default_rng(1).normal(size=(2000, 3))
+    ball = BALL_CENTRE + BALL_RADIUS * g / np.linalg.norm(g, axis=1, keepdims=True)
+    assert (np.linalg.norm(ball - centre, axis=1) < radius).all()      # the whole ball inside
+    assert radius < 2.0 * BALL_RADIUS                                     # not the unit sphere (2.5x)
+    assert (np.linalg.norm(scene.c2w[:, :3, 3] - centre, axis=1) > radius).all()

@@ -23,6 +23,10 @@ BACKGROUND_LEVEL = 0.01
 """Linear value above which a pixel outside the masks is not black (about 25/255 in sRGB)."""
 BACKGROUND_MIN_FRACTION = 0.05
 """Share of the pixels outside the masks that must be above ``BACKGROUND_LEVEL``."""
+MIN_FRAME_POINTS = 50
+"""Without a support, the sparse points reframe the SDF's ball only when the load frame was guessed
+from the cameras (the frustum rule, not a ``scale_mat``) and at least this many of them lie within
+reach: the ball's 0.98-quantile radius then rests on at least one point beyond it."""
 
 
 def lit_outside_masks(images, masks) -> float:
@@ -57,6 +61,18 @@ def decide_masks(has_masks: bool, w_mask: float, lit_outside: float = 0.0) -> tu
                                   "no masks: a background volume explains what the object does not cover")]
 
 
+def without_strays(points: np.ndarray, factor: float = 3.0) -> np.ndarray:
+    """``points [P, 3]`` without those farther from their coordinate-wise median than ``factor``
+    times the median such distance. Without a support plane nothing separates the object's points
+    from stray triangulations (a wrong match lands anywhere in the cameras' reach), and a few of
+    them far out would set the enclosing ball's radius (as ``fit_lights`` drops lines beyond 3x
+    the median distance)."""
+    if len(points) == 0:
+        return points
+    dist = np.linalg.norm(points - np.median(points, axis=0), axis=1)
+    return points[dist <= factor * np.median(dist)]
+
+
 def decide_object_region(scene) -> tuple[list[float] | None, list[Decision], np.ndarray,
                                          tuple[np.ndarray, float] | None]:
     """Without masks: ``(halfspace, decisions, points, frame)``.
@@ -69,8 +85,13 @@ def decide_object_region(scene) -> tuple[list[float] | None, list[Decision], np.
     (:func:`~nepf_core.data.object_region.enclosing_ball`) in load-frame units, the frame the SDF
     should model. ``halfspace`` (``n . x + c > 0``, or None: the whole unit sphere) and
     ``points`` (the triangulated points in the object region, ``[P, 3]``, for
-    :mod:`nepf_core.train.surface_points`) are in that frame. ``frame`` is None when there is
-    no support (the load frame stays)."""
+    :mod:`nepf_core.train.surface_points`) are in that frame.
+
+    Without a support, a load frame given by the data (DTU's ``scale_mat``) stays (``frame`` None).
+    A frame guessed from the cameras (COLMAP, instant-ngp, DTU without ``scale_mat``) is the
+    largest ball every camera sees whole, which can be far larger than the object; the points
+    then say where the object is, and ``frame`` is their enclosing ball as with a support
+    (at least ``MIN_FRAME_POINTS`` of them), so that the SDF's grid spends its cells on the object."""
     from nepf_core.data.normalize import CAMERA_CLEARANCE
     from nepf_core.data.object_region import enclosing_ball, find_object_region
     from nepf_core.data.sparse_points import scene_points
@@ -84,15 +105,18 @@ def decide_object_region(scene) -> tuple[list[float] | None, list[Decision], np.
     region = find_object_region(scene, points=sparse, search_radius=reach)
     frame, decisions = None, []
     hs = region.halfspace()
-    if hs is not None:
-        obj = in_front(sparse[np.linalg.norm(sparse, axis=1) < reach], hs)
+    reached = sparse[np.linalg.norm(sparse, axis=1) < reach]
+    obj = without_strays(reached) if hs is None else in_front(reached, hs)
+    guessed = scene.extras.get("normalization") == "frustum"
+    if hs is not None or (guessed and len(obj) >= MIN_FRAME_POINTS):
         centre, radius = enclosing_ball(obj, cams)
         frame, region = (centre, radius), region.in_frame(centre, radius)
         sparse, hs = (sparse - centre) / radius, region.halfspace()
+        where = "in front of the support" if hs is not None else "seen (no support; the load frame was guessed from the cameras)"
         decisions.append(Decision("object_frame", {"centre": [round(float(v), 4) for v in centre],
                                                    "radius": round(radius, 4)},
-                                  f"the SDF models the ball around the {len(obj)} sparse points in front "
-                                  f"of the support (centre and radius in units of the load frame's unit sphere, "
+                                  f"the SDF models the ball around the {len(obj)} sparse points {where} "
+                                  f"(centre and radius in units of the load frame's unit sphere, "
                                   f"the largest ball every camera sees whole)", 0))
     inside = sparse[np.linalg.norm(sparse, axis=1) < 1.0]
     if hs is not None:
