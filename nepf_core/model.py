@@ -26,12 +26,7 @@ class ModelConfig:
     radiance: HeadConfig = field(default_factory=lambda: HeadConfig(activation="siren", n_freqs_v=4))
     """Outgoing radiance network (paper: 8x256 SIREN)."""
     photon: HeadConfig = field(default_factory=lambda: HeadConfig(activation="relu"))
-    """Photon network (paper: 8x256 ReLU); with ``light="emitters"`` the visibility network."""
-    light: str = "photon"
-    """``photon``: the paper's per-point light direction and intensity; ``emitters``: ``emitters``
-    global point emitters and a smooth visibility (:mod:`nepf_core.fields.emitters`)."""
-    emitters: int = 2
-    """``K``, the number of emitters (``light="emitters"``)."""
+    """Photon network (paper: 8x256 ReLU)."""
     material: HeadConfig = field(default_factory=lambda: HeadConfig(activation="siren"))
     """Material network (paper: 8x256 SIREN)."""
     init_variance: float = 0.3
@@ -60,17 +55,6 @@ def build_sdf(cfg: ModelConfig) -> nn.Module:
     raise ValueError(f"unknown sdf_kind {cfg.sdf_kind!r} (mlp|grid)")
 
 
-def build_light(cfg: ModelConfig, feature_dim: int) -> nn.Module:
-    """The light model: a :class:`PhotonField` or an :class:`EmitterLight` (both give
-    ``forward -> (light_dir [N, 3], intensity [N])`` and ``illuminate -> ([N, K, 3], [N, K])``)."""
-    if cfg.light == "photon":
-        return PhotonField(cfg.photon, feature_dim)
-    if cfg.light == "emitters":
-        from nepf_core.fields.emitters import EmitterLight
-        return EmitterLight(cfg.photon, cfg.emitters)
-    raise ValueError(f"unknown light model {cfg.light!r} (photon|emitters)")
-
-
 class NePFModel(nn.Module):
     """All fields of one NePF scene (normalised frame)."""
 
@@ -80,7 +64,7 @@ class NePFModel(nn.Module):
         self.sdf = build_sdf(cfg)
         F = self.sdf.feature_dim
         self.radiance = RadianceField(cfg.radiance, F)
-        self.photon = build_light(cfg, F)
+        self.photon = PhotonField(cfg.photon, F)
         self.material = MaterialField(cfg.material, F)
         self.deviation = Deviation(cfg.init_variance)
         self.background = BackgroundVolume(cfg.background_volume) if cfg.background else None

@@ -91,12 +91,6 @@ class PhotonField(nn.Module):
         intensity = nn.functional.softplus(raw[..., 2] + self.intensity_bias)
         return direction_from_angles(rho, phi), intensity
 
-    def illuminate(self, x: Tensor, n: Tensor, feature: Tensor) -> tuple[Tensor, Tensor]:
-        """The shading's contract (one light per point, ``K = 1``): ``(directions [N, 1, 3],
-        irradiance [N, 1])``, as :meth:`nepf_core.fields.emitters.EmitterLight.illuminate`."""
-        light_dir, intensity = self(x, n, feature)
-        return light_dir[:, None], intensity[:, None]
-
 
 class MaterialField(nn.Module):
     """Material network ``M(x, n, feature) -> (albedo [N,3], roughness [N], metallic [N])``,

@@ -193,8 +193,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
         p = shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray, logits=train)
         rgb_surf = p.pbr
         surface = Surface(x=xr, normal=nr, direction=d, light_dir=p.light_dir, intensity=p.intensity,
-                          albedo=p.albedo, roughness=p.roughness, metallic=p.metallic, material_logits=p.logits,
-                          lights=p.lights)
+                          albedo=p.albedo, roughness=p.roughness, metallic=p.metallic, material_logits=p.logits)
     if jitter_sigma > 0:
         surface.jitter = jittered_material(model, surface, jitter_sigma, amp=cfg.amp_heads, xj=xj, fj=fj)
     lobe = lobe_split(surface, rgb_surf, lambertian=cfg.lambertian, kind=cfg.bsdf_kind) if request.lobe_split else None

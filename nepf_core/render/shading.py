@@ -3,11 +3,8 @@
 At a point ``x`` with unit normal ``n``, SDF features ``F`` and ray direction ``d``:
 
     R(x, d, grad f, F)                                 radiance network (L_r)
-    l_k, E_k = light(x, n, F);  c, r, m = material(x, n, F)
-    pbr  = sum_k f_bsdf(l_k, -d, n; c, r, m) E_k (n . l_k)^+     (L_vol, L_surf)
-
-``k`` runs over the light model's lights at the point: one for the paper's photon network
-(``l, I``), ``K`` for the global emitters (:mod:`nepf_core.fields.emitters`).
+    l, I = photon(x, n, F);  c, r, m = material(x, n, F)
+    pbr  = f_bsdf(l, -d, n; c, r, m) I (n . l)^+        (L_vol, L_surf)
 
 Samples whose weight is at most ``RenderConfig.head_weight_threshold`` are not shaded (they
 contribute at most that weight each to any colour); each ray's max-weight sample always is.
@@ -21,7 +18,6 @@ import torch
 from torch import Tensor
 
 from nepf_core import bsdf
-from nepf_core.fields.emitters import dominant
 
 
 @dataclass(frozen=True)
@@ -51,9 +47,6 @@ class PointShading:
     roughness: Tensor
     metallic: Tensor
     logits: Tensor | None
-    lights: tuple[Tensor, Tensor] | None = None
-    """With more than one light per point: every light's ``(directions [N, K, 3], irradiance
-    [N, K])`` (``light_dir`` and ``intensity`` are the dominant one's); None with one light."""
 
 
 @dataclass
@@ -78,35 +71,24 @@ def shade_points(model, cfg, shading: Shading, xs: Tensor, vs: Tensor, ns: Tenso
     (a pixel that received no light says nothing about the albedo). Without
     ``shading.specular`` the fading lobe :func:`nepf_core.bsdf.shade_fading_lobe`."""
     with _autocast(cfg, xs.device):
-        dirs, irradiance = model.photon.illuminate(xs, ns, fs)
+        light_dir, intensity = model.photon(xs, ns, fs)
         if logits:
             albedo, rough, metal, z = model.material(xs, ns, fs, with_logits=True)
         else:
             (albedo, rough, metal), z = model.material(xs, ns, fs), None
-    dirs, irradiance = dirs.float(), irradiance.float()
+    light_dir, intensity = light_dir.float(), intensity.float()
     albedo, rough, metal = albedo.float(), rough.float(), metal.float()
     albedo_shade = albedo
     if cfg.unlit_albedo_stopgrad and unlit is not None:
         albedo_shade = torch.where(unlit[:, None], albedo.detach(), albedo)
-    pbr = None
-    for k in range(dirs.shape[1]):   # one term per light: sum_k f(l_k) E_k (n . l_k)^+
-        term = shade_one_light(cfg, shading, ns, dirs[:, k], -vs, albedo_shade, rough, metal, irradiance[:, k])
-        pbr = term if pbr is None else pbr + term
-    light_dir, intensity = dominant(dirs, irradiance, ns)
-    return PointShading(pbr, light_dir, intensity, albedo, rough, metal, None if z is None else z.float(),
-                        (dirs, irradiance) if dirs.shape[1] > 1 else None)
-
-
-def shade_one_light(cfg, shading: Shading, n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, rough: Tensor,
-                    metal: Tensor, irradiance: Tensor) -> Tensor:
-    """``f(l, v, n) E (n . l)^+ [N, 3]`` for one light per point (``n, l, v [N, 3]``, ``E [N]``);
-    without ``shading.specular`` the fading lobe ``(1 - w m) f_d(c) + w f_s`` (w fading to 0, a
-    dielectric diffuse)."""
-    if not shading.specular:
-        return bsdf.shade_fading_lobe(n, l, v, albedo, rough[:, None], metal[:, None], irradiance[:, None],
-                                      shading.diffuse_metal_weight, lambertian=cfg.lambertian, kind=cfg.bsdf_kind)
-    return bsdf.shade(n, l, v, albedo, rough[:, None], metal[:, None], irradiance[:, None],
-                      lambertian=cfg.lambertian, specular=True, kind=cfg.bsdf_kind)
+    if not shading.specular:  # lobe dropped: (1 - w m) f_d(c) + w f_s, w fading to 0 (a dielectric diffuse)
+        pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
+                                     intensity[:, None], shading.diffuse_metal_weight, lambertian=cfg.lambertian,
+                                     kind=cfg.bsdf_kind)
+    else:
+        pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
+                         intensity[:, None], lambertian=cfg.lambertian, specular=True, kind=cfg.bsdf_kind)
+    return PointShading(pbr, light_dir, intensity, albedo, rough, metal, None if z is None else z.float())
 
 
 def selected_samples(weights: Tensor, flat_max: Tensor, threshold: float) -> Tensor:
@@ -131,4 +113,4 @@ def shade_samples(model, cfg, shading: Shading, sw, normals: Tensor, sel_idx: Te
     unlit = unlit_ray[sel_idx // S] if unlit_ray is not None else None
     p = shade_points(model, cfg, shading, xs, vs, ns, fs, unlit, logits=train)
     return ShadedSamples(p.pbr, p.light_dir, p.intensity, p.albedo, p.roughness, p.metallic, p.logits,
-                         p.lights, index=sel_idx, radiance=rad.float())
+                         index=sel_idx, radiance=rad.float())

@@ -77,15 +77,6 @@ def init_radiance_to_data(model: NePFModel, scene: Scene) -> None:
         last.bias.copy_(torch.log(p / (1.0 - p)).to(last.bias))
 
 
-def place_lights(model: NePFModel, scene: Scene) -> None:
-    """Start global emitters (``model.light == "emitters"``) at the scene's camera centres
-    (:meth:`nepf_core.fields.emitters.EmitterLight.place`); the photon network needs no placing.
-    A resumed run overwrites this with its checkpoint."""
-    place = getattr(model.photon, "place", None)
-    if place is not None and getattr(scene, "c2w", None) is not None:
-        place(torch.as_tensor(np.asarray(scene.c2w)[:, :3, 3], dtype=torch.float32))
-
-
 def unlit_pixels(scene: Scene, stopgrad: bool, rel_threshold: float) -> tuple[float | None, Decision | None]:
     """``(threshold, decision)`` for ``render.unlit_albedo_stopgrad`` (``stopgrad``): a training
     pixel is unlit when ``max_c L_gt < rel_threshold * q99`` (:func:`nepf_core.rays.unlit_threshold`);
