@@ -3,8 +3,9 @@
 A synthetic child run whose scene has ``gt/relight`` calls :func:`relight_metrics` after training
 (its time is not training time): ``nepf render``'s channels of ``gt/dtu_test`` scored against
 ``gt/arrays_test.npz`` (albedo PSNR all / lit, roughness / metallic MAE, normal MAE), ``nepf
-relight`` under ``gt/relight/lights.json`` scored with the relight PSNR, and the oracle
-(:func:`bench.oracle.oracle_scene`) with the same BSDF kind, so that the gap reads as "ours
+relight`` under ``gt/relight/lights.json`` scored with the relight PSNR, the learned light's
+median direction error on the lit foreground (:func:`bench.shading_report.shading_rows`, all
+albedos), and the oracle (:func:`bench.oracle.oracle_scene`) with the same BSDF kind, so that the gap reads as "ours
 against the best our BSDF can do".
 """
 
@@ -16,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 KEYS = ("relight_psnr", "relight_oracle_psnr", "relight_scale", "relight_bsdf", "albedo_psnr", "albedo_psnr_lit",
-        "roughness_mae", "metallic_mae", "normal_mae_deg")
+        "roughness_mae", "metallic_mae", "normal_mae_deg", "light_dir_error_deg_median")
 """What :func:`relight_metrics` reports (plus ``seconds``)."""
 
 
@@ -40,5 +41,7 @@ def relight_metrics(run_dir, scene_dir, device: str = "cpu") -> dict:
     res = eval_section(run_dir, gt / "dtu_test", renders, scene.images, scene.masks, out,
                        relight_dir=gt / "relight", gt_maps=gt / "arrays_test.npz", device=device)
     res["relight_oracle_psnr"] = oracle_scene(scene_dir, res["relight_bsdf"])["relight_psnr"]
+    from bench.shading_report import shading_rows
+    res["light_dir_error_deg_median"] = shading_rows(Path(run_dir), Path(scene_dir), 0.0)["light_dir_error_deg_median"]
     res["seconds"] = time.perf_counter() - t0
     return {k: res.get(k) for k in (*KEYS, "seconds")}

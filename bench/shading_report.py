@@ -6,8 +6,9 @@ light_intensity, depth) and the scene's truth (``SCENE/gt/arrays_test.npz``, ``g
 the test cameras of ``gt/dtu_test``), and prints, over GT-foreground pixels lit by the training
 light whose GT albedo luminance is at least ``--min-albedo``:
 
-* the angle between the learned light direction ``l(x)`` and the true direction to the light
-  from the recovered surface point (median, 90th percentile);
+* the angle between the learned light direction ``l(x)`` and the true direction from the
+  recovered surface point to the light that lights it most (the key light, or where the key light
+  does not reach, the fill; :func:`main_light_direction`) (median, 90th percentile);
 * per quintile of the GT shading ``s = t / a`` (the pixel over its GT albedo: irradiance and
   cosine), the median GT and recovered ``n.l``, the recovered irradiance ``I (n.l)``, and the
   recovered albedo over the GT one (after one least-squares scale per channel, as the albedo
@@ -16,8 +17,8 @@ light whose GT albedo luminance is at least ``--min-albedo``:
 A recovered albedo that follows the GT shading (low in the dim quintiles, high in the bright
 ones) means the shading went into the albedo: the light field's irradiance is flatter than the
 truth. For a diffuse surface only ``n.l`` is identifiable (``l`` may turn about ``n``), so the
-angle alone is not an error unless ``n.l`` is off too. Needs a DTU-format scene with one
-training light (``../shared/scenes``).
+angle alone is not an error unless ``n.l`` is off too. Needs a DTU-format scene
+(``../shared/scenes``); the quintiles' shading is the image over the GT albedo (all lights).
 """
 
 from __future__ import annotations
@@ -27,6 +28,17 @@ import json
 from pathlib import Path
 
 import numpy as np
+
+
+def main_light_direction(x: np.ndarray, n: np.ndarray, positions: np.ndarray, power: np.ndarray) -> np.ndarray:
+    """``[..., 3]`` unit direction from each point ``x [..., 3]`` to the light that gives it the most
+    irradiance ``I_k (n . l_k)^+ / d_k^2`` (GT normals ``n``), among ``positions [L, 3]`` with
+    powers ``power [L]``: with a key and a fill light, the one the learned light should follow."""
+    to = positions.reshape((1,) * (x.ndim - 1) + positions.shape) - x[..., None, :]   # [..., L, 3]
+    d2 = (to ** 2).sum(-1)
+    dirs = to / np.sqrt(d2)[..., None]
+    k = (power * np.clip((dirs * n[..., None, :]).sum(-1), 0, None) / d2).argmax(-1)
+    return np.take_along_axis(dirs, k[..., None, None], axis=-2)[..., 0, :]
 
 
 def shading_rows(run: Path, scene_dir: Path, min_albedo: float = 0.5) -> dict:
@@ -40,7 +52,9 @@ def shading_rows(run: Path, scene_dir: Path, min_albedo: float = 0.5) -> dict:
     test = load_held_out(scene_dir / "gt" / "dtu_test", wfn)
     pred = np.load(run / "relight_eval" / "renders" / "arrays.npz")
     gt = np.load(scene_dir / "gt" / "arrays_test.npz")
-    light = np.asarray(json.loads((scene_dir / "gt" / "lights.json").read_text())["lights"][0]["position_world"])
+    lights = json.loads((scene_dir / "gt" / "lights.json").read_text())["lights"]
+    light_pos = np.asarray([lt["position_world"] for lt in lights], dtype=np.float64)            # [L, 3]
+    light_power = np.asarray([np.mean(lt.get("intensity_rgb", [1.0])) for lt in lights])        # [L]
     fg = gt["alpha"] > FOREGROUND_ALPHA
     img = gt["rgb_linear_per_light"][:, 0].astype(np.float32)
     lit = img.max(-1) >= unlit_threshold(img, fg, 0.01)   # the albedo-lit metric's pixels
@@ -54,8 +68,7 @@ def shading_rows(run: Path, scene_dir: Path, min_albedo: float = 0.5) -> dict:
         o = r.origins.numpy().reshape(test.height, test.width, 3)
         d = r.directions.numpy().reshape(test.height, test.width, 3)
         x = (o + d * pred["depth"][v].astype(np.float32)) * wfn[0, 0] + wfn[:3, 3]   # world
-        to_light = light - x
-        to_light /= np.linalg.norm(to_light, axis=-1, keepdims=True)
+        to_light = main_light_direction(x, gt["normal_world"][v].astype(np.float64), light_pos, light_power)
         keep = keep_all[v] & (alb_gt[v].mean(-1) >= min_albedo)
         l_pred = pred["light_dir"][v].astype(np.float32)
         n_pred = pred["normal"][v].astype(np.float32)

@@ -1,0 +1,127 @@
+"""The materials suite: one preset on every kind of scene, judged by how well its asset relights.
+
+``python -m bench materials [--budget 600] [--threads 2] [--seeds 0] [--override k=v ...] --out DIR``
+runs ``fast`` (one subprocess per scene, one at a time: :mod:`bench.run`) on the six scenes of
+``SUITE`` and prints one row per scene:
+
+* the oracle (the ground truth shaded with our BSDF and GT-mesh shadows, :mod:`bench.oracle`), the
+  relight PSNR and the gap ``oracle - relight`` (dB);
+* albedo PSNR (all / lit pixels), roughness and metallic MAE, normal error (degrees);
+* the learned light's median direction error on the lit foreground (:mod:`bench.shading_report`);
+* held-out PBR (masked) and the steps trained;
+
+then the suite's mean gap and its worst scene. ``python -m bench materials --table DIR [--against
+BASE]`` prints the table of a finished suite and, against a baseline suite, the rule a preset
+change has to pass: **the mean gap improves and no scene's relight gets worse by more than its
+noise** (``NOISE_DB``, the spread of a second seed; give ``--seeds 0,1`` to measure it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from statistics import mean, median
+
+SUITE = ("sphere_diffuse", "torus_glossy", "spot_textured", "bunny_metal", "spot_svbrdf", "torus_stiff")
+"""One scene of each kind: diffuse, glossy dielectric, textured, metal, metal beside dielectric, stiff."""
+NOISE_DB = 0.5
+"""A relight difference within this many dB is noise (seed to seed) unless two seeds say otherwise."""
+COLUMNS = (("relight_oracle_psnr", "oracle", 2), ("relight_psnr", "relight", 2), ("gap", "gap", 2),
+           ("albedo_psnr", "albedo", 2), ("albedo_psnr_lit", "albedo lit", 2), ("roughness_mae", "rough MAE", 3),
+           ("metallic_mae", "metal MAE", 3), ("normal_mae_deg", "normal deg", 1),
+           ("light_dir_error_deg_median", "light deg", 1), ("test_psnr", "PBR masked", 2), ("steps", "steps", 0))
+
+
+def suite_rows(results_dir: Path) -> dict[str, dict]:
+    """``{scene: row}`` of a finished suite (``results.json``), each value the median over seeds."""
+    from bench.curves import final_test
+    runs = json.loads((Path(results_dir) / "results.json").read_text())["runs"]
+    per_scene: dict[str, list[dict]] = {}
+    for r in runs:
+        ev = dict(r.get("relight_eval") or {})
+        row = {k: ev.get(k) for k, _, _ in COLUMNS}
+        if row["relight_psnr"] is not None and row["relight_oracle_psnr"] is not None:
+            row["gap"] = row["relight_oracle_psnr"] - row["relight_psnr"]
+        row["test_psnr"], row["steps"] = final_test(r).get("test_psnr"), r.get("steps")
+        per_scene.setdefault(r["scene"], []).append(row)
+    return {s: {k: _median([row[k] for row in rows]) for k, _, _ in COLUMNS} for s, rows in per_scene.items()}
+
+
+def _median(xs):
+    xs = [x for x in xs if isinstance(x, (int, float))]
+    return median(xs) if xs else None
+
+
+def format_table(rows: dict[str, dict]) -> str:
+    head = "| scene | " + " | ".join(name for _, name, _ in COLUMNS) + " |"
+    lines = [head, "|" + "---|" * (len(COLUMNS) + 1)]
+    for scene, row in rows.items():
+        cells = ["n/a" if row.get(k) is None else f"{row[k]:.{nd}f}" for k, _, nd in COLUMNS]
+        lines.append(f"| {scene} | " + " | ".join(cells) + " |")
+    gaps = {s: r["gap"] for s, r in rows.items() if r.get("gap") is not None}
+    if gaps:
+        worst = max(gaps, key=gaps.get)
+        lines.append(f"\nmean relight gap {mean(gaps.values()):.2f} dB over {len(gaps)} scenes; "
+                     f"worst {worst} ({gaps[worst]:.2f} dB)")
+    return "\n".join(lines)
+
+
+def verdict(candidate: dict[str, dict], baseline: dict[str, dict], noise_db: float = NOISE_DB) -> tuple[bool, str]:
+    """``(adopt, why)``: adopt when the mean gap over the scenes both suites scored is lower and no
+    scene's relight PSNR dropped by more than ``noise_db``."""
+    common = [s for s in baseline if candidate.get(s, {}).get("gap") is not None and baseline[s].get("gap") is not None]
+    if not common:
+        return False, "no scene scored in both suites"
+    d_gap = mean(candidate[s]["gap"] for s in common) - mean(baseline[s]["gap"] for s in common)
+    worse = {s: baseline[s]["relight_psnr"] - candidate[s]["relight_psnr"] for s in common
+             if baseline[s]["relight_psnr"] - candidate[s]["relight_psnr"] > noise_db}
+    missing = sorted(set(baseline) - set(common))
+    why = (f"mean gap {'+' if d_gap >= 0 else ''}{d_gap:.2f} dB over {len(common)} scenes; "
+           + (", ".join(f"{s} {-v:.2f} dB" for s, v in worse.items()) + " worse beyond noise" if worse else
+              "no scene worse beyond noise")
+           + (f"; not scored: {', '.join(missing)}" if missing else ""))
+    return d_gap < 0 and not worse and not missing, why
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench materials", description=__doc__.splitlines()[0])
+    ap.add_argument("--table", type=Path, help="print the table of a finished suite instead of running one")
+    ap.add_argument("--against", type=Path, help="with --table: a baseline suite to judge against")
+    ap.add_argument("--scenes", default=",".join(SUITE))
+    ap.add_argument("--scenes-root", default=str(Path(__file__).resolve().parents[2] / "shared" / "scenes"))
+    ap.add_argument("--budget", type=float, default=600.0, help="training seconds per scene (default 600)")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--seeds", default="0", help="comma-separated training seeds (two: the noise)")
+    ap.add_argument("--override", action="append", default=[], metavar="section.field=VALUE")
+    ap.add_argument("--out", type=Path)
+    ap.add_argument("--skip-done", action="store_true")
+    a = ap.parse_args(argv)
+    if a.table is None:
+        if a.out is None:
+            ap.error("--out DIR is needed to run the suite")
+        seeds = [int(s) for s in a.seeds.split(",") if s.strip()]
+        from bench.run import main as run_main
+        args = ["--scenes", a.scenes, "--scenes-root", a.scenes_root, "--configs", "fast", "--budget", str(a.budget),
+                "--eval-every", str(a.budget), "--threads", str(a.threads), "--no-fit-chamfer",
+                "--repeats", str(len(seeds)), "--out", str(a.out)]
+        if len(seeds) == 1:
+            args += ["--override", f"train.seed={seeds[0]}"]
+        for o in a.override:
+            args += ["--override", o]
+        if a.skip_done:
+            args.append("--skip-done")
+        code = run_main(args)
+        if code:
+            return code
+    rows = suite_rows(a.table or a.out)
+    print(format_table(rows))
+    if a.against is not None:
+        adopt, why = verdict(rows, suite_rows(a.against))
+        print(f"\nagainst {a.against}: {'adopt' if adopt else 'do not adopt'}: {why}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
