@@ -107,7 +107,7 @@ def decide_object_region(scene) -> tuple[list[float] | None, list[Decision], np.
     hs = region.halfspace()
     reached = sparse[np.linalg.norm(sparse, axis=1) < reach]
     obj = without_strays(reached) if hs is None else in_front(reached, hs)
-    guessed = scene.extras.get("normalization") == "frustum"
+    guessed = (getattr(scene, "extras", None) or {}).get("normalization") == "frustum"
     if hs is not None or (guessed and len(obj) >= MIN_FRAME_POINTS):
         centre, radius = enclosing_ball(obj, cams)
         frame, region = (centre, radius), region.in_frame(centre, radius)
