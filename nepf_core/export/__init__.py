@@ -34,8 +34,8 @@ frames + relit at 256², EGL (llvmpipe) previews; one ``export_asset`` call each
     xatlas alone on the same 50k-face mesh, separate run: 38.5 s wall / 15.7 s CPU with
     ``chart_iterations=0`` (our default), 50.2 s / 17.1 s with xatlas' default 1.
 
-The unwrap dominates (earlier, on a quieter machine: ~4 s for 20k faces, 12-16 s for 50k
-with xatlas defaults), so the face budget is the main cost knob.
+The unwrap dominates (:func:`~nepf_core.export.uv_bake.unwrap_uv`), so the face budget is the
+main cost knob.
 An analytic field is nearly free to evaluate; with a neural field the SDF grid (block
 centres plus near-surface blocks: 2.1M queries for a sphere at R = 256), the vertex normals
 and the ~0.6·S² texel material queries add the network's cost.

@@ -1,12 +1,14 @@
 """``fit()``: the single-stage NePF training loop.
 
-Per step: set the schedule (learning rate, NeuS cosine annealing, coarse-to-fine grid levels,
-occupancy refresh) -> draw rays (rays that meet no occupied cell mostly left out) -> render
-(L_r, L_vol, L_surf from one set of samples) -> losses -> Adam step (skipped and counted when
-the loss or gradient is non-finite) -> adaptivity rules -> records. Around it: sync-PSNR on
-training views, held-out evaluation on a wall-clock schedule, checkpoints, a time budget and a
-cooperative stop. Hooks (:class:`nepf_core.train.hooks.TrainHooks`) observe the steps,
-evaluations and checkpoints.
+Per step: the schedule (NeuS cosine annealing, coarse-to-fine grid levels, the learning rate
+after the rules' ``before_step``: cool-down, stop, occupancy refresh) -> draw rays -> the rules'
+``on_batch`` (rays that meet no occupied cell mostly left out, evidence asked of the render) ->
+render (L_r, L_vol, L_surf from one set of samples) -> losses -> Adam step (skipped and counted
+when the loss or gradient is non-finite) -> the rules' ``after_step`` -> records. The rules are
+step callbacks (:mod:`nepf_core.train.rules.callback`) that :class:`Adaptivity` calls in order;
+the loop never names one. Around the steps: sync-PSNR on training views, held-out evaluation on
+a wall-clock schedule, checkpoints, a time budget and a cooperative stop. Hooks
+(:class:`nepf_core.train.hooks.TrainHooks`) observe the steps, evaluations and checkpoints.
 
 Optimiser: Adam, ``betas = (0.9, 0.99)``, ``eps = 1e-15``, fused where available, two parameter
 groups (grid tables at ``train.lr_grid``, the rest at ``train.lr``);
