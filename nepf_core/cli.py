@@ -122,7 +122,6 @@ def cmd_relight(a) -> int:
 def cmd_eval(a) -> int:
     import numpy as np
 
-    from nepf_core.data.detect import load_scene
     from nepf_core.color import linear_to_srgb
     from nepf_core.evaluate import psnr, ssim
     from nepf_core.train import load_model
@@ -215,9 +214,15 @@ def _side_rule(max_side: int) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``nepf`` parser: one sub-command per ``_add_<command>``, then the forwarded ones."""
     ap = argparse.ArgumentParser(prog="nepf", description="NePF: single-stage neural inverse rendering")
     sub = ap.add_subparsers(dest="cmd", required=True)
+    for add in (_add_fit, _add_mesh, _add_render, _add_relight, _add_eval, _add_export, _add_forwarded):
+        add(sub)
+    return ap
 
+
+def _add_fit(sub) -> None:
     p = sub.add_parser("fit", help="train NePF on a dataset folder (DTU, Blender, nerfstudio, instant-ngp or COLMAP)")
     p.add_argument("data", help="dataset folder")
     p.add_argument("--out", required=True, help="run folder to write")
@@ -241,12 +246,16 @@ def build_parser() -> argparse.ArgumentParser:
     _device_arg(p)
     p.set_defaults(fn=cmd_fit)
 
+
+def _add_mesh(sub) -> None:
     p = sub.add_parser("mesh", help="write RUN/mesh.ply (marching cubes at SDF=0, input world coordinates)")
     p.add_argument("run")
     p.add_argument("--resolution", type=int, default=256)
     _device_arg(p)
     p.set_defaults(fn=cmd_mesh)
 
+
+def _add_render(sub) -> None:
     p = sub.add_parser("render", help="render every camera of another dataset folder, all channels")
     p.add_argument("run")
     p.add_argument("--cameras", required=True, help="dataset folder whose cameras to render")
@@ -256,6 +265,8 @@ def build_parser() -> argparse.ArgumentParser:
     _device_arg(p)
     p.set_defaults(fn=cmd_render)
 
+
+def _add_relight(sub) -> None:
     p = sub.add_parser("relight", help="render the recovered asset under point lights (lights.json), with shadows")
     p.add_argument("run")
     p.add_argument("--lights", required=True, help='lights.json: {"lights": [{"type": "point", "position_world": '
@@ -267,6 +278,8 @@ def build_parser() -> argparse.ArgumentParser:
     _device_arg(p)
     p.set_defaults(fn=cmd_relight)
 
+
+def _add_eval(sub) -> None:
     p = sub.add_parser("eval", help="PSNR/SSIM of the surface PBR on test views, Chamfer to a GT mesh")
     p.add_argument("run")
     p.add_argument("--test", required=True, help="held-out dataset folder")
@@ -281,6 +294,8 @@ def build_parser() -> argparse.ArgumentParser:
     _device_arg(p)
     p.set_defaults(fn=cmd_eval)
 
+
+def _add_export(sub) -> None:
     p = sub.add_parser("export", help="GLB with baked PBR textures, light field, previews, manifest")
     p.add_argument("run")
     p.add_argument("--texture-size", type=int, default=1024, choices=[256, 512, 1024, 2048])
@@ -291,16 +306,21 @@ def build_parser() -> argparse.ArgumentParser:
     _device_arg(p)
     p.set_defaults(fn=cmd_export)
 
-    p = sub.add_parser("make-scene", help="write a synthetic ground-truth scene (DTU + Blender + gt/)")
-    p.add_argument("rest", nargs=argparse.REMAINDER)
-    p.set_defaults(fn=lambda a: _delegate("nepf_core.data.synth", "main", a.rest))
 
-    for name, mod, fn in (("serve", "api.commands", "serve_main"), ("worker", "worker.commands", "worker_main"),
-                          ("token", "api.commands", "token_main")):
-        p = sub.add_parser(name, help=f"service: {name} (see docs/SERVICE.md)", add_help=False)
+#: commands whose arguments go unchanged to another module's ``main(argv)`` (:func:`main` forwards
+#: them before parsing; the parser lists them for ``nepf --help``)
+FORWARDED_COMMANDS = {"make-scene": ("nepf_core.data.synth", "main"), "serve": ("api.commands", "serve_main"),
+                      "worker": ("worker.commands", "worker_main"), "token": ("api.commands", "token_main")}
+
+
+def _add_forwarded(sub) -> None:
+    for name, (mod, fn) in FORWARDED_COMMANDS.items():
+        if name == "make-scene":
+            p = sub.add_parser(name, help="write a synthetic ground-truth scene (DTU + Blender + gt/)")
+        else:
+            p = sub.add_parser(name, help=f"service: {name} (see docs/SERVICE.md)", add_help=False)
         p.add_argument("rest", nargs=argparse.REMAINDER)
         p.set_defaults(fn=lambda a, mod=mod, fn=fn: _delegate(mod, fn, a.rest))
-    return ap
 
 
 #: top-level modules of the ``service`` extra (pyproject.toml): without them serve/worker/token
@@ -323,15 +343,11 @@ def _delegate(module: str, fn: str, argv: list[str]) -> int:
         return 2
 
 
-SERVICE_COMMANDS = {"serve": ("api.commands", "serve_main"), "worker": ("worker.commands", "worker_main"),
-                    "token": ("api.commands", "token_main"), "make-scene": ("nepf_core.data.synth", "main")}
-
-
 def main(argv: list[str] | None = None) -> int:
     from nepf_core.data.errors import DatasetError
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in SERVICE_COMMANDS:  # forwarded unchanged (options included)
-        mod, fn = SERVICE_COMMANDS[argv[0]]
+    if argv and argv[0] in FORWARDED_COMMANDS:  # forwarded unchanged (options included)
+        mod, fn = FORWARDED_COMMANDS[argv[0]]
         return _delegate(mod, fn, argv[1:])
     ap = build_parser()
     a = ap.parse_args(_join_up_values(argv))

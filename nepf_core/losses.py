@@ -206,8 +206,8 @@ def loss_batch(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, specular
     ``rgb_r = rgb_vol = C_bg``, :func:`nepf_core.render.renderer.render_background_only`). The colour
     terms ``L_r``, ``L_vol`` and ``L_bg`` are then means over all ``R + B`` rays, each background ray
     weighing its ``rays.weight`` (the misses it stands for, :mod:`nepf_core.train.rules.empty_rays`),
-    and the kept misses count once in ``L_bg`` (each stands for itself, no longer for
-    ``1 / miss_keep`` drawn misses)."""
+    and the kept misses count once in ``L_bg``: the other misses, for which a kept one weighs
+    ``1 / miss_keep`` in the SDF batch's terms, are among the background rays there."""
     gt = linear_to_srgb(rays.rgb)
     fg = rays.mask if (use_mask and rays.mask is not None) else None
     zero = out.rgb_r.new_zeros(())

@@ -9,7 +9,7 @@ written *after* ``latest.pt`` (both atomically), so it never names a step the ``
 hold; a kill between the two leaves it one checkpoint behind, which readers tolerate (below).
 
 Why: a worker killed at step 130 with a checkpoint at 100 trains 101..130 again when it
-resumes, and ``metrics.jsonl`` listed those steps twice (issue 37). On resume the core cuts
+resumes, and ``metrics.jsonl`` would list those steps twice. On resume the core cuts
 the log back to what it held at the checkpoint (:func:`cut_metrics_to_checkpoint`), so each
 step is listed once, with the values of the run that goes on. The worker (``worker/runner.py``)
 reads :func:`checkpoint_step` to show ``stage: "resuming"`` at the checkpoint's step while the

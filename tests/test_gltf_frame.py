@@ -20,7 +20,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from datagen import synth_dir  # noqa: E402
 from export_fixtures import SphereQuery  # noqa: E402
-from nepf_core.data.synth import look_at  # noqa: E402
+from nepf_core.data.synth_cameras import look_at  # noqa: E402
 from nepf_core.up_axis import (UP_AXES, UpFrame, axis_from_vector, axis_vector, camera_up_world,  # noqa: E402
                                gltf_from_world, parse_up_axis, resolve_up_frame)
 

@@ -21,7 +21,7 @@ from scipy import ndimage
 from nepf_core.data.object_region import RegionConfig, find_object_region, find_support_plane
 from nepf_core.data.scene import Scene
 from nepf_core.data.sparse_points import fundamental, midpoint_triangulation, sampson_distance, triangulate_scene
-from nepf_core.data.synth import look_at
+from nepf_core.data.synth_cameras import look_at
 from nepf_core.export.mesh import extract_mesh, remove_floaters
 from nepf_core.model import ModelFieldQuery
 from nepf_core.render.sampling import halfspace_exit, object_segment

@@ -15,7 +15,7 @@ import torch
 from nepf_core.fields.sdf_grid import GridSDFConfig
 from nepf_core.train.adaptivity import Adaptivity
 from nepf_core.train.run_state import RunState
-from rule_fixtures import fast, make_adapt, named, records, tiny
+from rule_fixtures import batch, fast, make_adapt, named, prepare, records, tiny
 
 
 def _scene(has_masks: bool, outside: float = 0.0):
@@ -33,7 +33,7 @@ def _scene(has_masks: bool, outside: float = 0.0):
 def test_mask_and_background_decisions(has_masks):
     a, rs = make_adapt()
     rs.background = not has_masks  # the opposite of what should be decided
-    a.before_training(_scene(has_masks))
+    prepare(a, _scene(has_masks))
     assert rs.use_mask_loss is has_masks
     assert rs.background is (not has_masks)
     (m,) = named(a, "mask_loss")
@@ -52,7 +52,7 @@ def test_masks_with_a_lit_outside_get_the_background_volume():
     volume as well as the mask loss; black outside (the synthetic scenes) gets none."""
     for outside, want in ((0.3, True), (0.0, False)):
         a, rs = make_adapt()
-        a.before_training(_scene(True, outside))
+        prepare(a, _scene(True, outside))
         assert rs.use_mask_loss is True and rs.background is want
         (b,) = named(a, "background_model")
         assert b["value"] is want
@@ -63,7 +63,7 @@ def test_mask_loss_off_when_its_weight_is_zero_and_occupancy_recorded():
     cfg.loss.w_mask = 0.0
     rs = RunState.from_config(cfg)
     a = Adaptivity(cfg, rs, iters_fixed=True)
-    a.before_training(_scene(True))
+    prepare(a, _scene(True))
     assert rs.use_mask_loss is False and rs.background is False
     (e,) = named(a, "empty_space_skipping")
     assert e["value"] is True and "64^3" in e["reason"]
@@ -153,6 +153,12 @@ def _sphere_model_and_rays(n_hit=24, n_miss=40):
     return cfg, model, rays
 
 
+def thinned(a, model, rays, step, generator=None):
+    """``(kept, left_out)`` of the rules' ``on_batch`` on ``rays``."""
+    b = batch(a, model, rays, step, generator)
+    return b.rays, b.left_out
+
+
 def _adapt(cfg, enabled=True, **rules):
     cfg.train.adaptive = enabled
     cfg.rules = dataclasses.replace(cfg.rules, **rules)
@@ -162,13 +168,12 @@ def _adapt(cfg, enabled=True, **rules):
 def test_rays_that_meet_no_occupied_cell_leave_the_batch():
     cfg, model, rays = _sphere_model_and_rays()
     a = _adapt(cfg, miss_keep=0.0)
-    kept, left_out = a.thin_empty_rays(model, rays, step=0, generator=torch.Generator().manual_seed(1))
+    kept, left_out = thinned(a, model, rays, 0, torch.Generator().manual_seed(1))
     assert torch.equal(kept.view, torch.arange(24))            # exactly the hits, in order
     assert left_out is None                                     # no background shows the misses
     from nepf_core.fields.background import BackgroundVolume
     model.background = BackgroundVolume()
-    _, left_out = _adapt(cfg, miss_keep=0.0).thin_empty_rays(model, rays, step=0,
-                                                             generator=torch.Generator().manual_seed(1))
+    _, left_out = thinned(_adapt(cfg, miss_keep=0.0), model, rays, 0, torch.Generator().manual_seed(1))
     # the misses, for the background alone: as many as the SDF batch, each standing for 40 / 24
     assert len(left_out) == 24 and bool((left_out.view >= 24).all()) and len(set(left_out.view.tolist())) == 24
     assert torch.allclose(left_out.weight, torch.full((24,), 40 / 24))
@@ -178,7 +183,7 @@ def test_rays_that_meet_no_occupied_cell_leave_the_batch():
     assert a.step_stats()["rays_left_out"] == pytest.approx(40 / 64)
     # a random share of the misses stays: about miss_keep of them, the hits always
     b = _adapt(cfg, miss_keep=0.5)
-    n_kept = [len(b.thin_empty_rays(model, rays, step=s, generator=torch.Generator().manual_seed(s))[0])
+    n_kept = [len(thinned(b, model, rays, s, torch.Generator().manual_seed(s))[0])
               for s in range(1, 41)]
     assert min(n_kept) >= 24 and 24 + 0.35 * 40 < sum(n_kept) / len(n_kept) < 24 + 0.65 * 40
     assert len(named(b, "empty_rays")) == 1                   # recorded once
@@ -188,11 +193,11 @@ def test_rays_that_meet_no_occupied_cell_leave_the_batch():
 
 def test_empty_rays_stay_without_adaptivity_or_before_the_first_refresh():
     cfg, model, rays = _sphere_model_and_rays()
-    assert _adapt(cfg, enabled=False).thin_empty_rays(model, rays, step=0) == (rays, None)
+    assert thinned(_adapt(cfg, enabled=False), model, rays, 0) == (rays, None)
     from nepf_core.model import NePFModel
     fresh = NePFModel(cfg.model)                                # never refreshed: everything occupied
     on = _adapt(cfg)
-    assert on.thin_empty_rays(fresh, rays, step=0) == (rays, None) and not named(on, "empty_rays")
+    assert thinned(on, fresh, rays, 0) == (rays, None) and not named(on, "empty_rays")
 
 
 def test_kept_misses_carry_importance_weights_and_the_mask_loss_stays_unbiased():
@@ -204,7 +209,7 @@ def test_kept_misses_carry_importance_weights_and_the_mask_loss_stays_unbiased()
     full = float(mask_bce(ws, rays.mask))               # mean over the whole drawn batch
     vals = []
     for s in range(400):
-        kept, _ = a.thin_empty_rays(model, rays, step=s, generator=torch.Generator().manual_seed(100 + s))
+        kept, _ = thinned(a, model, rays, s, torch.Generator().manual_seed(100 + s))
         hit = kept.view < 24
         assert torch.equal(kept.weight[hit], torch.ones(int(hit.sum())))
         assert torch.allclose(kept.weight[~hit], torch.full((int((~hit).sum()),), 4.0))
@@ -273,7 +278,7 @@ def test_left_out_misses_train_the_background_as_if_rendered_whole():
         return compute_losses(out, batch, cfg.loss, use_mask=False, background=True, **kw)
 
     cfg, model, rays, a = setup(24, 16)
-    kept, left_out = a.thin_empty_rays(model, rays, step=0, generator=torch.Generator().manual_seed(1))
+    kept, left_out = thinned(a, model, rays, 0, torch.Generator().manual_seed(1))
     assert len(kept) == 24 and len(left_out) == 16 and left_out.weight is None
     whole = losses(cfg, model, rays)
     split = losses(cfg, model, kept, background_rays=(render_background_only(model, left_out, cfg.render, train=True),
@@ -298,7 +303,7 @@ def test_left_out_misses_train_the_background_as_if_rendered_whole():
         c_bg = render_background_only(model, rays, cfg.render, train=True)
         vals = []
         for s in range(300):
-            kept, left_out = a.thin_empty_rays(model, rays, step=s, generator=torch.Generator().manual_seed(s))
+            kept, left_out = thinned(a, model, rays, s, torch.Generator().manual_seed(s))
             assert len(kept) == 8 and len(left_out) == 8 and torch.allclose(left_out.weight, torch.full((8,), 3.0))
             vals.append(float(losses(cfg, model, kept, background_rays=(c_bg[left_out.view], left_out))["loss_r"]))
     assert abs(sum(vals) / len(vals) - whole) < 0.02 * whole

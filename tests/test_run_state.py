@@ -12,7 +12,7 @@ from nepf_core.config import fast, paper, tiny
 from nepf_core.render.renderer import Shading
 from nepf_core.train.adaptivity import Adaptivity
 from nepf_core.train.run_state import RunState
-from rule_fixtures import fake_out, losses, named
+from rule_fixtures import batch, check, evaluate, fake_out, losses, named, prepare, start_step
 
 
 def test_run_state_starts_from_the_config_and_round_trips():
@@ -46,14 +46,15 @@ def test_paper_takes_no_adaptive_decision():
     assert cfg.train.adaptive is False and fast().train.adaptive and tiny().train.adaptive
     rs = RunState.from_config(cfg)
     a = Adaptivity(cfg, rs, iters_fixed=False)
-    a.before_training(SimpleNamespace(has_masks=True, images=[torch.zeros(4, 4, 3).numpy()], masks=[torch.ones(4, 4).numpy()]))
-    assert not a.request(100).lobe_split
+    prepare(a, SimpleNamespace(has_masks=True, images=[torch.zeros(4, 4, 3).numpy()], masks=[torch.ones(4, 4).numpy()]))
+    assert not batch(a, None, None, step=100).request.lobe_split
     for step in range(1, 2001):
-        a.after_step(step, fake_out(share=0.0, metallic=0.0), losses(eik=0.0), check=True)
+        check(a, step, fake_out(share=0.0, metallic=0.0), losses(eik=0.0))
     for k in range(1, 20):
-        a.on_test_eval(k, {"test_psnr": 20.0, "wall_s": 100.0 * k})
-        assert a.lr_factor(100.0 * k, 0.5) == 0.5
-    assert rs.specular and rs.w_hessian == cfg.loss.w_hessian > 0 and not a.stop_requested
+        evaluate(a, k, {"test_psnr": 20.0, "wall_s": 100.0 * k})
+        start = start_step(a, 100.0 * k, 0.5)
+        assert start.lr_factor == 0.5 and not start.stop
+    assert rs.specular and rs.w_hessian == cfg.loss.w_hessian > 0 and not a.plateau.stop_requested
     assert [d["decision"] for d in a.decisions] == ["mask_loss", "background_model", "adaptive"]
     assert not named(a, "specular_lobe") and not named(a, "hessian_loss") and not named(a, "early_stop")
 

@@ -37,17 +37,18 @@ from pathlib import Path
 
 import numpy as np
 
+from nepf_core.data.assemble import read_normalized_views, scene_from_views
 from nepf_core.data.camera_models import check_nerfstudio_model
 from nepf_core.data.errors import DatasetError
-from nepf_core.data.budget import check_total_pixels, image_size
+from nepf_core.data.budget import image_size
 from nepf_core.data.images import (SUPPORTED_EXTS, box_downscale, decode_image, is_image_name,
                                    looks_like_image, mask_from_array, read_image)
-from nepf_core.data.normalize import (Normalization, c2w_to_normalized, check_c2w,
+from nepf_core.data.normalize import (Normalization, check_c2w,
                                       check_intrinsics, normalization_from_cameras,
                                       opengl_to_opencv)
 from nepf_core.data.paths import dataset_path, existing_file, rel
 from nepf_core.data.scene import Scene
-from nepf_core.data.views import ViewSpec, load_view_pixels
+from nepf_core.data.views import ViewSpec
 from nepf_json import DEFAULT_LIMITS, JsonInputError, load_file
 
 SPLITS = ("train", "test", "val")
@@ -272,25 +273,17 @@ def load_transforms(root: Path, json_path: Path, *, fmt: str, split: str, downsc
     ``max_side`` (0/None: full size) is the working resolution (``views.py``);
     ``max_total_pixels`` the decoded-pixel budget of the split (``budget.py``), checked
     from the headers before anything is decoded."""
-    from nepf_core.data.dtu import pick_views
-    from nepf_core.data.ingp import undistort_image
-
     root = Path(root)
     specs = parse_transforms(json_path, root)
-    check_total_pixels([s.image for s in specs], max_total_pixels)
-    norm_specs = specs if norm_json is None or norm_json == json_path else parse_transforms(norm_json, root)
-    norm = normalization_for_specs(norm_specs)
-    specs = [specs[i] for i in pick_views(len(specs), max_views)]
-    images, masks, Ks = load_view_pixels(specs, downscale=downscale, max_side=max_side,
-                                         alpha_mask=True, undistort=undistort_image)
-    wfn = norm.world_from_norm
-    c2w = c2w_to_normalized(np.stack([s.c2w for s in specs]), wfn)
+    views, c2w, norm = read_normalized_views(
+        specs, lambda: normalization_for_specs(specs if norm_json is None or norm_json == json_path
+                                               else parse_transforms(norm_json, root)),
+        max_views=max_views, max_total_pixels=max_total_pixels, downscale=downscale, max_side=max_side)
     extras = {"normalization": norm.method, "transforms": rel(json_path, root),
               "normalization_from": rel(norm_json or json_path, root),
-              "undistorted": any(s.distortion is not None for s in specs)}
-    return Scene(images=images, masks=masks, intrinsics=Ks.astype(np.float32),
-                 c2w=c2w.astype(np.float32), world_from_norm=wfn, names=[s.label for s in specs],
-                 root=str(root), source_format=fmt, split=split, extras=extras)
+              "undistorted": any(s.distortion is not None for s in views.specs)}
+    return scene_from_views(views, c2w, norm.world_from_norm, root=root, source_format=fmt, split=split,
+                            extras=extras)
 
 
 def load_blender(root: Path | str, split: str = "train", *, downscale: int = 1,

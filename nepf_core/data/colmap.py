@@ -32,15 +32,15 @@ from pathlib import Path
 
 import numpy as np
 
-from nepf_core.data.budget import check_total_pixels
+from nepf_core.data.assemble import check_whole_set, read_normalized_views, scene_from_views
 from nepf_core.data.camera_models import colmap_intrinsics
 from nepf_core.data.colmap_io import ColmapModel, model_ext, qvec_to_rotmat, read_model
 from nepf_core.data.errors import DatasetError
 from nepf_core.data.images import is_image_name
-from nepf_core.data.normalize import c2w_to_normalized, check_c2w
+from nepf_core.data.normalize import check_c2w
 from nepf_core.data.paths import dataset_path, existing_dir, rel
 from nepf_core.data.scene import Scene
-from nepf_core.data.views import ViewSpec, load_view_pixels
+from nepf_core.data.views import ViewSpec
 
 #: Where the sparse model may be, in order.
 MODEL_DIRS = ("sparse/0", "sparse")
@@ -131,26 +131,16 @@ def load_colmap(root: Path | str, split: str = "train", *, downscale: int = 1,
     :func:`nepf_core.data.blender.load_transforms`.
     """
     from nepf_core.data.blender import normalization_for_specs
-    from nepf_core.data.dtu import pick_views
-    from nepf_core.data.ingp import undistort_image
 
     root = Path(root)
-    if split not in ("train", "all"):
-        raise DatasetError(f"COLMAP folders have no '{split}' split (all registered images are training views)",
-                           file=".", code="missing_split")
+    check_whole_set(split, "COLMAP", "all registered images", ".")
     specs, model, label = parse_colmap(root)
-    check_total_pixels([s.image for s in specs], max_total_pixels)
-    norm = normalization_for_specs(specs)
-    specs = [specs[i] for i in pick_views(len(specs), max_views)]
-    images, masks, Ks = load_view_pixels(specs, downscale=downscale, max_side=max_side,
-                                         alpha_mask=True, undistort=undistort_image)
-    wfn = norm.world_from_norm
-    c2w = c2w_to_normalized(np.stack([s.c2w for s in specs]), wfn)
-    points = points_in_frame(model.points, wfn)
+    views, c2w, norm = read_normalized_views(specs, lambda: normalization_for_specs(specs), max_views=max_views,
+                                             max_total_pixels=max_total_pixels, downscale=downscale, max_side=max_side)
+    points = points_in_frame(model.points, norm.world_from_norm)
     extras = {"normalization": norm.method, "colmap_model": label + "/", "model_format": model.ext[1:],
-              "undistorted": any(s.distortion is not None for s in specs),
+              "undistorted": any(s.distortion is not None for s in views.specs),
               "camera_models": sorted({model.cameras[im.camera_id].model for im in model.images.values()}),
               "sparse_points": 0 if points is None else int(len(points))}
-    return Scene(images=images, masks=masks, intrinsics=Ks.astype(np.float32), c2w=c2w.astype(np.float32),
-                 world_from_norm=wfn, names=[s.label for s in specs], root=str(root), source_format="colmap",
-                 split=split, extras=extras, points=points)
+    return scene_from_views(views, c2w, norm.world_from_norm, root=root, source_format="colmap", split=split,
+                            extras=extras, points=points)

@@ -32,15 +32,16 @@ from pathlib import Path
 import numpy as np
 import scipy.linalg
 
+from nepf_core.data.assemble import check_whole_set, read_views, scene_from_views
 from nepf_core.data.budget import check_total_pixels
 from nepf_core.data.errors import DatasetError
 from nepf_core.data.images import list_images
-from nepf_core.data.normalize import (c2w_to_normalized, check_intrinsics,
+from nepf_core.data.normalize import (as_4x4, c2w_to_normalized, check_intrinsics,
                                       normalization_from_cameras)
 from nepf_core.data.npz import NpzArrays
 from nepf_core.data.paths import existing_dir, existing_file, rel
 from nepf_core.data.scene import Scene
-from nepf_core.data.views import ViewSpec, load_view_pixels
+from nepf_core.data.views import ViewSpec
 
 CAMERA_FILES = ("cameras_sphere.npz", "cameras.npz")
 IMAGE_DIRS = ("image", "images")
@@ -120,20 +121,7 @@ def read_matrix(cams: NpzArrays, key: str, view: int) -> np.ndarray:
     """Member ``key`` (``world_mat_i`` or ``scale_mat_i``) as a float64 ``[4, 4]``: its header
     checked first (real dtype, ``[4, 4]`` or ``[3, 4]``), then its entries (finite)."""
     kind = key.rsplit("_", 1)[0]
-    return _as_4x4(cams.read(key, MATRIX_SHAPES[kind], view=view), key, cams.label, view)
-
-
-def _as_4x4(m: np.ndarray, key: str, label: str, view: int) -> np.ndarray:
-    m = np.asarray(m, dtype=np.float64)
-    if m.shape == (3, 4):
-        m = np.vstack([m, [0, 0, 0, 1]])
-    if m.shape != (4, 4):
-        raise DatasetError(f"{key} has shape {m.shape}, expected 4x4 or 3x4", file=label, view=view,
-                           code="invalid_camera")
-    if not np.isfinite(m).all():
-        raise DatasetError(f"{key} has NaN or infinite entries", file=label, view=view,
-                           code="nonfinite_camera")
-    return m
+    return as_4x4(cams.read(key, MATRIX_SHAPES[kind], view=view), key, label=cams.label, view=view)
 
 
 def _shared_scale(cams: NpzArrays, idx: list[int]) -> np.ndarray | None:
@@ -218,43 +206,29 @@ def parse_dtu(root: Path | str) -> tuple[list[ViewSpec], np.ndarray | None, dict
     return specs, scale, info
 
 
-def pick_views(n: int, max_views: int | None) -> np.ndarray:
-    """Evenly spaced view indices: all ``n`` or ``round(linspace(0, n-1, max_views))``."""
-    if max_views is None or max_views >= n:
-        return np.arange(n)
-    if max_views < 1:
-        raise DatasetError(f"max_views must be >= 1, got {max_views}", code="bad_argument")
-    return np.unique(np.round(np.linspace(0, n - 1, max_views)).astype(np.int64))
-
-
 def load_dtu(root: Path | str, split: str = "train", *, downscale: int = 1,
              max_views: int | None = None, max_side: int | None = None,
              max_total_pixels: int | None = None) -> Scene:
     """Load a DTU/IDR/NeuS folder as a :class:`Scene` (see module docstring).
 
     DTU folders have no splits: ``split`` must be ``"train"`` or ``"all"`` and every view
-    is returned. ``max_views`` keeps evenly spaced views (:func:`pick_views`); ``max_side``
+    is returned. ``max_views`` keeps evenly spaced views (:func:`~nepf_core.data.assemble.pick_views`); ``max_side``
     is the working resolution (0/None: full size, ``views.py``) and ``max_total_pixels`` the
     decoded-pixel budget, checked from the image headers before decoding (``budget.py``).
     """
     root = Path(root)
-    if split not in ("train", "all"):
-        raise DatasetError(f"DTU folders have no '{split}' split (all views are training views)",
-                           file=".", code="missing_split")
+    check_whole_set(split, "DTU", "all views", ".")
     specs, scale, info = parse_dtu(root)
     check_total_pixels([s.image for s in specs], max_total_pixels)
-    specs = [specs[i] for i in pick_views(len(specs), max_views)]
-    images, masks, Ks = load_view_pixels(specs, downscale=downscale, max_side=max_side)
-    c2w = np.stack([s.c2w for s in specs])
+    views = read_views(specs, max_views=max_views, downscale=downscale, max_side=max_side)
+    c2w = views.c2w()
     if scale is not None:
         wfn = scale
         info["normalization"] = "scale_mat"
     else:
-        norm = normalization_from_cameras(Ks, c2w, (images.shape[2], images.shape[1]), masks)
+        norm = normalization_from_cameras(views.Ks, c2w, (views.images.shape[2], views.images.shape[1]), views.masks)
         wfn = norm.world_from_norm
         c2w = c2w_to_normalized(c2w, wfn)
         info["normalization"] = norm.method
-    return Scene(images=images, masks=masks, intrinsics=Ks.astype(np.float32),
-                 c2w=c2w.astype(np.float32), world_from_norm=wfn.astype(np.float64),
-                 names=[s.label for s in specs], root=str(root), source_format="dtu",
-                 split="train" if split == "train" else "all", extras=info)
+    return scene_from_views(views, c2w, wfn.astype(np.float64), root=root, source_format="dtu", split=split,
+                            extras=info)

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 from scipy import ndimage
 
-from nepf_core.data.errors import DatasetError
+from nepf_core.data.assemble import check_whole_set
 from nepf_core.data.paths import existing_file
 from nepf_core.data.scene import Scene
 
@@ -145,9 +145,7 @@ def load_ingp(root: Path | str, split: str = "train", *, downscale: int = 1,
     from nepf_core.data.blender import load_transforms, read_json
 
     root = Path(root)
-    if split not in ("train", "all"):
-        raise DatasetError(f"instant-ngp folders have no '{split}' split (all frames are training views)",
-                           file=TRANSFORMS, code="missing_split")
+    check_whole_set(split, "instant-ngp", "all frames", TRANSFORMS)
     path = root / TRANSFORMS
     scene = load_transforms(root, path, fmt="ingp", split=split, downscale=downscale,
                             max_views=max_views, max_side=max_side, max_total_pixels=max_total_pixels)

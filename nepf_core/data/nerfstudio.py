@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nepf_core.data.assemble import check_whole_set
 from nepf_core.data.errors import DatasetError
 from nepf_core.data.paths import dataset_path, existing_file, rel
 from nepf_core.data.scene import Scene
@@ -126,9 +127,7 @@ def load_nerfstudio(root: Path | str, split: str = "train", *, downscale: int = 
     from nepf_core.data.colmap import points_in_frame
 
     root = Path(root)
-    if split not in ("train", "all"):
-        raise DatasetError(f"nerfstudio folders have no '{split}' split (all frames are training views)",
-                           file=TRANSFORMS, code="missing_split")
+    check_whole_set(split, "nerfstudio", "all frames", TRANSFORMS)
     A, ply = nerfstudio_extras(root)
     scene = load_transforms(root, root / TRANSFORMS, fmt="nerfstudio", split=split, downscale=downscale,
                             max_views=max_views, max_side=max_side, max_total_pixels=max_total_pixels)

@@ -44,22 +44,29 @@ def opengl_to_opencv(c2w_gl: np.ndarray) -> np.ndarray:
     return np.asarray(c2w_gl, dtype=np.float64) @ GL_TO_CV
 
 
-def check_c2w(c2w: np.ndarray, *, label: str | None, view: int | None) -> np.ndarray:
-    """Validate a camera-to-world matrix and return it as ``[4, 4]`` float64.
-
-    Accepts ``[3, 4]`` or ``[4, 4]``. Raises ``nonfinite_camera`` for NaN/inf,
-    ``singular_camera`` when ``|det R| < 1e-6``, and ``invalid_camera`` when the
-    rotation block is not orthonormal (``max |R^T R - I| > 1e-2``) or is a reflection.
-    """
-    m = np.asarray(c2w, dtype=np.float64)
+def as_4x4(m: np.ndarray, what: str, *, label: str | None, view: int | None) -> np.ndarray:
+    """A ``[3, 4]`` or ``[4, 4]`` matrix as float64 ``[4, 4]`` (``[0, 0, 0, 1]`` appended);
+    ``invalid_camera`` for any other shape, ``nonfinite_camera`` for NaN/inf (``what`` names it)."""
+    m = np.asarray(m, dtype=np.float64)
     if m.shape == (3, 4):
         m = np.vstack([m, [0, 0, 0, 1]])
     if m.shape != (4, 4):
-        raise DatasetError(f"camera matrix has shape {m.shape}, expected 4x4", file=label, view=view,
+        raise DatasetError(f"{what} has shape {m.shape}, expected 4x4 or 3x4", file=label, view=view,
                            code="invalid_camera")
     if not np.isfinite(m).all():
-        raise DatasetError("camera matrix has NaN or infinite entries", file=label, view=view,
+        raise DatasetError(f"{what} has NaN or infinite entries", file=label, view=view,
                            code="nonfinite_camera")
+    return m
+
+
+def check_c2w(c2w: np.ndarray, *, label: str | None, view: int | None) -> np.ndarray:
+    """Validate a camera-to-world matrix and return it as ``[4, 4]`` float64.
+
+    Accepts ``[3, 4]`` or ``[4, 4]`` (:func:`as_4x4`). Raises ``singular_camera`` when
+    ``|det R| < 1e-6`` and ``invalid_camera`` when the rotation block is not orthonormal
+    (``max |R^T R - I| > 1e-2``) or is a reflection.
+    """
+    m = as_4x4(c2w, "camera matrix", label=label, view=view)
     R = m[:3, :3]
     det = np.linalg.det(R)
     if abs(det) < 1e-6:

@@ -1,4 +1,4 @@
-"""Where the object is in a capture without masks: the support plane (issue 26).
+"""Where the object is in a capture without masks: the support plane.
 
 Without masks the SDF is asked to model everything inside the unit sphere that every camera sees
 whole (``data/normalize.py``): the object *and* the patch of wall or table it hangs from or

@@ -34,8 +34,8 @@ frames + relit at 256², EGL (llvmpipe) previews; one ``export_asset`` call each
     xatlas alone on the same 50k-face mesh, separate run: 38.5 s wall / 15.7 s CPU with
     ``chart_iterations=0`` (our default), 50.2 s / 17.1 s with xatlas' default 1.
 
-The unwrap dominates (earlier, on a quieter machine: ~4 s for 20k faces, 12-16 s for 50k
-with xatlas defaults), so the face budget is the main cost knob.
+The unwrap dominates (:func:`~nepf_core.export.uv_bake.unwrap_uv`), so the face budget is the
+main cost knob.
 An analytic field is nearly free to evaluate; with a neural field the SDF grid (block
 centres plus near-surface blocks: 2.1M queries for a sphere at R = 256), the vertex normals
 and the ~0.6·S² texel material queries add the network's cost.
@@ -113,6 +113,11 @@ def _write_glb(out_dir: Path, baked, uvm, vw: np.ndarray, nw: np.ndarray, m: np.
     return faces_uv
 
 
+ASSET_FILES = ("mesh.ply", "textures/base_color.png", "textures/orm.png", "asset.glb", "light_field.json",
+               "lights.json", "frame.json")
+"""What :func:`export_asset` always writes, relative to the run folder (previews aside)."""
+
+
 class _StageTimer:
     """Wall seconds of each export stage: :meth:`lap` books the time since the previous lap."""
 
@@ -177,6 +182,24 @@ def _relit_previews(query, m: np.ndarray, out_dir: Path, vw: np.ndarray, up, siz
         return []
 
 
+def _unwrap_and_bake(query, mesh, vn: np.ndarray, texture_size: int, chunk: int, device, timer: _StageTimer):
+    """The UV atlas of ``mesh`` (split along seams) and the material baked into its textures."""
+    uvm = unwrap_uv(mesh.vertices, mesh.faces, texture_size)
+    timer.lap("unwrap")
+    pos = np.asarray(mesh.vertices, np.float32)[uvm.vmapping]
+    baked = bake_material_textures(query.material, pos, vn[uvm.vmapping], uvm.uv, uvm.faces, texture_size,
+                                   chunk=chunk, device=device)
+    timer.lap("bake")
+    return uvm, baked
+
+
+def _log_summary(log, timings: dict, out_dir: Path, uvm, texture_size: int, lights: dict) -> None:
+    glb_mb = (out_dir / "asset.glb").stat().st_size / 2**20
+    log("export: " + ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
+        + f"; asset.glb {glb_mb:.2f} MiB, {len(uvm.faces)} faces, {len(uvm.vmapping)} vertices, "
+        f"texture {texture_size}², light: {lights['type']}")
+
+
 def export_asset(
     query: FieldQuery,
     world_from_norm: np.ndarray,
@@ -235,21 +258,14 @@ def export_asset(
     timer = _StageTimer()
     mesh, vn, vw, nw = _write_mesh(query, m, out_dir, mesh_resolution, bbox, max_faces, chunk, device, log, timer)
 
-    uvm = unwrap_uv(mesh.vertices, mesh.faces, texture_size)
-    timer.lap("unwrap")
-    pos = np.asarray(mesh.vertices, np.float32)[uvm.vmapping]
-    baked = bake_material_textures(query.material, pos, vn[uvm.vmapping], uvm.uv, uvm.faces, texture_size,
-                                   chunk=chunk, device=device)
-    timer.lap("bake")
+    uvm, baked = _unwrap_and_bake(query, mesh, vn, texture_size, chunk, device, timer)
     faces_uv = _write_glb(out_dir, baked, uvm, vw, nw, m, frame, texture_size)
     timer.lap("glb")
 
     lights = _write_lights(query, mesh, m, out_dir, rot, light_samples, chunk, device)
     timer.lap("light_field")
 
-    written = [out_dir / "mesh.ply", out_dir / "textures" / "base_color.png",
-               out_dir / "textures" / "orm.png", out_dir / "asset.glb",
-               out_dir / "light_field.json", out_dir / "lights.json", out_dir / "frame.json"]
+    written = [out_dir / name for name in ASSET_FILES]
     if previews:
         written += render_previews(vw[uvm.vmapping], faces_uv, uvm.uv, nw[uvm.vmapping],
                                    out_dir / "textures" / "base_color.png", out_dir, lights,
@@ -257,13 +273,9 @@ def export_asset(
         timer.lap("previews")
         written += _relit_previews(query, m, out_dir, vw, up, preview_size, relit_bsdf, device, log)
         timer.lap("relit_previews")
-    timings = timer.timings
-    timings["total"] = time.perf_counter() - t_all
-    timings["cpu_total"] = time.process_time() - cpu_all  # this process only, all threads
-    glb_mb = (out_dir / "asset.glb").stat().st_size / 2**20
-    log("export: " + ", ".join(f"{k} {v:.2f}s" for k, v in timings.items())
-        + f"; asset.glb {glb_mb:.2f} MiB, {len(uvm.faces)} faces, {len(uvm.vmapping)} vertices, "
-        f"texture {texture_size}², light: {lights['type']}")
+    timer.timings["total"] = time.perf_counter() - t_all
+    timer.timings["cpu_total"] = time.process_time() - cpu_all  # this process only, all threads
+    _log_summary(log, timer.timings, out_dir, uvm, texture_size, lights)
     entries = [manifest_entry(out_dir, p) for p in written]
     if manifest:
         write_manifest(out_dir)

@@ -100,73 +100,109 @@ def rasterize_uv(uv: np.ndarray, faces: np.ndarray, width: int, height: int,
     tri_img = np.full(H * W, -1, dtype=np.int32)
     bary_img = np.zeros((H * W, 3), dtype=np.float32)
     best = np.full(H * W, np.inf, dtype=np.float32)
-
-    p = uv[faces].astype(np.float64) * np.array([W, H], dtype=np.float64) - 0.5  # [F,3,2]
-    e1 = p[:, 1] - p[:, 0]
-    e2 = p[:, 2] - p[:, 0]
-    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
-    valid = np.abs(det) > 1e-10
-    # inverse of T = [[e1x, e2x], [e1y, e2y]]
-    inv = np.zeros((len(faces), 2, 2))
-    d = np.where(valid, det, 1.0)
-    inv[:, 0, 0] = e2[:, 1] / d
-    inv[:, 0, 1] = -e2[:, 0] / d
-    inv[:, 1, 0] = -e1[:, 1] / d
-    inv[:, 1, 1] = e1[:, 0] / d
-    # altitude onto edge k (opposite vertex k): 2*area / |edge k|
-    edge_len = np.stack([np.linalg.norm(p[:, 2] - p[:, 1], axis=-1),
-                         np.linalg.norm(p[:, 0] - p[:, 2], axis=-1),
-                         np.linalg.norm(p[:, 1] - p[:, 0], axis=-1)], axis=-1)
-    alt = np.abs(det)[:, None] / np.maximum(edge_len, 1e-12)
-
-    lo = np.floor(p.min(axis=1) - margin_px).astype(np.int64)
-    hi = np.ceil(p.max(axis=1) + margin_px).astype(np.int64)
-    lo = np.maximum(lo, 0)
-    hi = np.minimum(hi, np.array([W - 1, H - 1]))
-    bw = np.clip(hi[:, 0] - lo[:, 0] + 1, 0, None)
-    bh = np.clip(hi[:, 1] - lo[:, 1] + 1, 0, None)
-    counts = np.where(valid, bw * bh, 0)
-    ids = np.nonzero(counts)[0]
-    csum = np.cumsum(counts[ids])
-    start = 0
-    while start < len(ids):
-        base = csum[start - 1] if start > 0 else 0
-        stop = int(np.searchsorted(csum, base + max_candidates, side="right"))
-        stop = max(stop, start + 1)
-        t = ids[start:stop]
-        cnt = counts[t]
-        start = stop
-        tr = np.repeat(t, cnt)
-        off = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-        w_rep = bw[tr]
-        col = lo[tr, 0] + off % w_rep
-        row = lo[tr, 1] + off // w_rep
-        dx = col - p[tr, 0, 0]
-        dy = row - p[tr, 0, 1]
-        b1 = inv[tr, 0, 0] * dx + inv[tr, 0, 1] * dy
-        b2 = inv[tr, 1, 0] * dx + inv[tr, 1, 1] * dy
-        b = np.stack([1.0 - b1 - b2, b1, b2], axis=-1)
-        outside = np.max(-b * alt[tr], axis=-1)  # pixels outside the triangle (<= 0 inside)
-        bad = np.maximum(outside, 0.0)
-        keep = outside <= margin_px
-        if not keep.any():
+    tris = _PixelTriangles.of(uv, faces, W, H)
+    lo, bw, counts = _texel_boxes(tris, margin_px, W, H)
+    for batch in _batches(counts, max_candidates):
+        pix, tr, b, bad = _candidate_texels(tris, batch, counts[batch], lo, bw, W, margin_px)
+        if len(pix) == 0:
             continue
-        tr, b, bad = tr[keep], b[keep], bad[keep]
-        pix = row[keep] * W + col[keep]
-        # best candidate per pixel within the batch, then against earlier batches
-        order = np.lexsort((bad, pix))
-        pix, tr, b, bad = pix[order], tr[order], b[order], bad[order]
-        first = np.ones(len(pix), dtype=bool)
-        first[1:] = pix[1:] != pix[:-1]
-        pix, tr, b, bad = pix[first], tr[first], b[first], bad[first]
-        better = bad < best[pix]
-        pix, tr, b, bad = pix[better], tr[better], b[better], bad[better]
+        pix, tr, b, bad = _best_per_texel(pix, tr, b, bad, best)
         b = np.clip(b, 0.0, None)
         b /= b.sum(axis=-1, keepdims=True)
         best[pix] = bad
         tri_img[pix] = tr
         bary_img[pix] = b
     return tri_img.reshape(H, W), bary_img.reshape(H, W, 3)
+
+
+@dataclass
+class _PixelTriangles:
+    """The triangles in pixel-centre coordinates: ``p [F, 3, 2]`` (``P_k``), ``valid [F]``
+    (non-degenerate), ``inv [F, 2, 2]`` (``T^{-1}``, 0 where degenerate), ``alt [F, 3]`` (the
+    altitude onto the edge opposite vertex ``k``: ``2 area / |edge k|``)."""
+
+    p: np.ndarray
+    valid: np.ndarray
+    inv: np.ndarray
+    alt: np.ndarray
+
+    @classmethod
+    def of(cls, uv: np.ndarray, faces: np.ndarray, W: int, H: int) -> "_PixelTriangles":
+        p = uv[faces].astype(np.float64) * np.array([W, H], dtype=np.float64) - 0.5  # [F,3,2]
+        e1 = p[:, 1] - p[:, 0]
+        e2 = p[:, 2] - p[:, 0]
+        det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+        valid = np.abs(det) > 1e-10
+        # inverse of T = [[e1x, e2x], [e1y, e2y]]
+        inv = np.zeros((len(faces), 2, 2))
+        d = np.where(valid, det, 1.0)
+        inv[:, 0, 0] = e2[:, 1] / d
+        inv[:, 0, 1] = -e2[:, 0] / d
+        inv[:, 1, 0] = -e1[:, 1] / d
+        inv[:, 1, 1] = e1[:, 0] / d
+        edge_len = np.stack([np.linalg.norm(p[:, 2] - p[:, 1], axis=-1),
+                             np.linalg.norm(p[:, 0] - p[:, 2], axis=-1),
+                             np.linalg.norm(p[:, 1] - p[:, 0], axis=-1)], axis=-1)
+        alt = np.abs(det)[:, None] / np.maximum(edge_len, 1e-12)
+        return cls(p=p, valid=valid, inv=inv, alt=alt)
+
+
+def _texel_boxes(tris: _PixelTriangles, margin_px: float, W: int, H: int
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each triangle's texel box grown by ``margin_px`` and clipped to the image: ``(lo [F, 2]``
+    (first column, row), ``bw [F]`` (box width), ``counts [F]`` (texels; 0 for a degenerate triangle))."""
+    lo = np.floor(tris.p.min(axis=1) - margin_px).astype(np.int64)
+    hi = np.ceil(tris.p.max(axis=1) + margin_px).astype(np.int64)
+    lo = np.maximum(lo, 0)
+    hi = np.minimum(hi, np.array([W - 1, H - 1]))
+    bw = np.clip(hi[:, 0] - lo[:, 0] + 1, 0, None)
+    bh = np.clip(hi[:, 1] - lo[:, 1] + 1, 0, None)
+    return lo, bw, np.where(tris.valid, bw * bh, 0)
+
+
+def _batches(counts: np.ndarray, max_candidates: int):
+    """Consecutive runs of the triangles with texels whose boxes hold at most ``max_candidates``
+    texels together (a larger box alone is a batch of its own)."""
+    ids = np.nonzero(counts)[0]
+    csum = np.cumsum(counts[ids])
+    start = 0
+    while start < len(ids):
+        base = csum[start - 1] if start > 0 else 0
+        stop = max(int(np.searchsorted(csum, base + max_candidates, side="right")), start + 1)
+        yield ids[start:stop]
+        start = stop
+
+
+def _candidate_texels(tris: _PixelTriangles, t: np.ndarray, cnt: np.ndarray, lo: np.ndarray, bw: np.ndarray,
+                      W: int, margin_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every texel of the boxes of triangles ``t`` within ``margin_px`` of its triangle:
+    ``(pixel index, triangle, barycentrics [n, 3], pixels outside (0 inside))``."""
+    tr = np.repeat(t, cnt)
+    off = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
+    w_rep = bw[tr]
+    col = lo[tr, 0] + off % w_rep
+    row = lo[tr, 1] + off // w_rep
+    dx = col - tris.p[tr, 0, 0]
+    dy = row - tris.p[tr, 0, 1]
+    inv = tris.inv
+    b1 = inv[tr, 0, 0] * dx + inv[tr, 0, 1] * dy
+    b2 = inv[tr, 1, 0] * dx + inv[tr, 1, 1] * dy
+    b = np.stack([1.0 - b1 - b2, b1, b2], axis=-1)
+    outside = np.max(-b * tris.alt[tr], axis=-1)  # pixels outside the triangle (<= 0 inside)
+    keep = outside <= margin_px
+    return row[keep] * W + col[keep], tr[keep], b[keep], np.maximum(outside, 0.0)[keep]
+
+
+def _best_per_texel(pix, tr, b, bad, best):
+    """The candidate least outside its triangle per texel within the batch, then only those
+    that beat the earlier batches' (``best``: pixels outside, per texel)."""
+    order = np.lexsort((bad, pix))
+    pix, tr, b, bad = pix[order], tr[order], b[order], bad[order]
+    first = np.ones(len(pix), dtype=bool)
+    first[1:] = pix[1:] != pix[:-1]
+    pix, tr, b, bad = pix[first], tr[first], b[first], bad[first]
+    better = bad < best[pix]
+    return pix[better], tr[better], b[better], bad[better]
 
 
 def fill_push_pull(img: np.ndarray, mask: np.ndarray) -> np.ndarray:

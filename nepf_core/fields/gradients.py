@@ -15,7 +15,7 @@ locally linear (a plane) and ``sqrt(2) / r`` on a sphere of radius ``r``.
 How ``H`` is computed: central differences of a *differentiable gradient* ``g``, not second
 differences of ``f``. A second difference ``(f(x+e) + f(x-e) - 2 f(x)) / e^2`` divides the
 float32 rounding error of ``f`` (~1e-7 relative, more through an 8-layer MLP) by ``e^2 = 1e-6``,
-which made ~40 % of the old diagonal-only term noise; a first difference of ``g`` divides by
+which made ~40 % of a diagonal-only term of second differences noise; a first difference of ``g`` divides by
 ``2e`` only. With ``e = 1e-3`` the float32 result agrees with float64 autograd's Hessian to
 ~1e-4 (rounding) plus the O(e^2) truncation (~1e-3 relative on a random small MLP), see
 ``tests/test_hessian.py``. ``g`` is

@@ -130,7 +130,7 @@ class RenderOutput:
     eikonal_weight: Tensor | None = None
     """``[P]``: the importance weight ``RayBatch.weight`` of the ray each ``eikonal`` sample
     lies on (None when the batch has no weights): the eikonal mean is then weighted like the
-    mask loss, so a batch thinned by :func:`nepf_core.train.rules.empty_rays.thin_empty_rays` keeps
+    mask loss, so a batch thinned by :meth:`nepf_core.train.rules.empty_rays.EmptyRayRule.thin` keeps
     its expectation."""
 
 

@@ -30,8 +30,5 @@ class DecisionLog:
         if decision is not None:
             self.records.append(decision.as_record())
 
-    def record(self, name: str, value, reason: str, step: int = 0) -> None:
-        self.add(Decision(name, value, reason, step))
-
     def has(self, name: str) -> bool:
         return any(r["decision"] == name for r in self.records)

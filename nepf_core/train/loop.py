@@ -1,12 +1,14 @@
 """``fit()``: the single-stage NePF training loop.
 
-Per step: set the schedule (learning rate, NeuS cosine annealing, coarse-to-fine grid levels,
-occupancy refresh) -> draw rays (rays that meet no occupied cell mostly left out) -> render
-(L_r, L_vol, L_surf from one set of samples) -> losses -> Adam step (skipped and counted when
-the loss or gradient is non-finite) -> adaptivity rules -> records. Around it: sync-PSNR on
-training views, held-out evaluation on a wall-clock schedule, checkpoints, a time budget and a
-cooperative stop. Hooks (:class:`nepf_core.train.hooks.TrainHooks`) observe the steps,
-evaluations and checkpoints.
+Per step: the schedule (NeuS cosine annealing, coarse-to-fine grid levels, the learning rate
+after the rules' ``before_step``: cool-down, stop, occupancy refresh) -> draw rays -> the rules'
+``on_batch`` (rays that meet no occupied cell mostly left out, evidence asked of the render) ->
+render (L_r, L_vol, L_surf from one set of samples) -> losses -> Adam step (skipped and counted
+when the loss or gradient is non-finite) -> the rules' ``after_step`` -> records. The rules are
+step callbacks (:mod:`nepf_core.train.rules.callback`) that :class:`Adaptivity` calls in order;
+the loop never names one. Around the steps: sync-PSNR on training views, held-out evaluation on
+a wall-clock schedule, checkpoints, a time budget and a cooperative stop. Hooks
+(:class:`nepf_core.train.hooks.TrainHooks`) observe the steps, evaluations and checkpoints.
 
 Optimiser: Adam, ``betas = (0.9, 0.99)``, ``eps = 1e-15``, fused where available, two parameter
 groups (grid tables at ``train.lr_grid``, the rest at ``train.lr``);
@@ -36,11 +38,13 @@ from nepf_core.render.renderer import SurfaceRequest, render_background_only, re
 from nepf_core.reframe import reframe_scene
 from nepf_core.resume import cut_metrics_to_checkpoint, write_checkpoint_info
 from nepf_core.train.adaptivity import Adaptivity
+from nepf_core.train.decisions import Decision
 from nepf_core.train.clock import TrainClock
 from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
 from nepf_core.train.hooks import TrainHooks
 from nepf_core.train.metrics_log import MetricsLog, plot_error_vs_time, write_json_atomic
 from nepf_core.train.result import FitError, FitResult
+from nepf_core.train.rules.callback import DataContext, EvaluationContext, ModelContext, StepBatch, StepEnd, StepStart
 from nepf_core.train.run_state import RunState
 from nepf_core.train.schedule import (coarse_to_fine, cos_anneal_ratio, progress_fraction, run_eta,
                                      scheduled_lr_factor)
@@ -97,8 +101,9 @@ class TrainingRun:
         cfg.check()
         self.run_state = RunState.from_config(cfg)
         rule_cfg = dataclasses.replace(cfg, rules=dataclasses.replace(cfg.rules, **(rules or {})))
-        self.adapt = Adaptivity(rule_cfg, self.run_state, iters_fixed=iters_fixed)
-        scene = self.scene = self.adapt.before_training(scene)   # maybe in the object's frame
+        self.adaptivity = Adaptivity(rule_cfg, self.run_state, iters_fixed=iters_fixed)
+        data = self.adaptivity.on_data(DataContext(scene))
+        scene = self.scene = data.scene   # maybe in the object's frame
         # the cameras' mean up vector in the input's world: the export's up axis (nepf_core.up_axis)
         self.camera_up = camera_up_world(scene.c2w, scene.world_from_norm)
         if targets is not None and targets.test_scene is not None:
@@ -112,13 +117,12 @@ class TrainingRun:
         self.gen = torch.Generator().manual_seed(tc.seed)
         self.ema = ParamEMA(self.model, tc.ema_decay) if tc.ema_decay != 0 else None   # a negative one: ParamEMA says so
         self.sampler = PixelSampler(scene, dev)
-        points = self.adapt.surface_points   # without masks: where the images saw a surface
+        points = data.surface_points   # without masks: where the images saw a surface
         self.surface_points = (SurfacePointPrior(points, dev) if cfg.loss.w_surface_points > 0 and points is not None
                                and len(points) else None)
         self.unlit_thr, decision = unlit_pixels(scene, cfg.render.unlit_albedo_stopgrad, tc.unlit_rel_threshold)
-        self.adapt.record(decision)
-        if self.model.occupancy is not None:
-            self.adapt.start_occupancy(self.model, scene)
+        self.adaptivity.log_decision(decision)
+        self.adaptivity.on_model(ModelContext(self.model, scene))
         # the render settings in effect (bf16 heads only on CUDA); evaluations use the same
         self.run_cfg = dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, amp_heads=bool(tc.amp and dev.type == "cuda")))
 
@@ -144,7 +148,7 @@ class TrainingRun:
                              map_location=self.device)
         extra = st["extra"]
         self.step, self.nonfinite = int(st["step"]), int(extra.get("nonfinite", 0))
-        self.adapt.load_state(extra.get("adaptivity", {}))
+        self.adaptivity.load_state_dict(extra.get("adaptivity", {}))
         restored = RunState.from_checkpoint(extra, self.cfg)
         for k, v in restored.to_dict().items():   # in place: the rules act on this object
             setattr(self.run_state, k, v)
@@ -190,7 +194,7 @@ class TrainingRun:
             self.checkpoint()
             self.evaluate(final=True)
         except FitError as e:
-            self.adapt.log.record("failed", True, str(e), self.step)
+            self.adaptivity.log_decision(Decision("failed", True, str(e), self.step))
             self._write_report("failed")
             raise
         finally:
@@ -202,20 +206,19 @@ class TrainingRun:
                          run_dir=str(self.dir), nonfinite_steps=self.nonfinite, last_test=self.last_test, report=report)
 
     def _set_schedule(self) -> bool:
-        """Learning rate, annealing, grid levels, occupancy refresh for the next step; False when
-        the plateau rule asks to stop."""
+        """Annealing, grid levels, then the rules' step start (a lower learning-rate factor, the
+        occupancy refresh), then the learning rate; False when a rule ends the run."""
         tc, p = self.cfg.train, self.progress()
-        f = scheduled_lr_factor(self.step, p, self.total, tc, budgeted=bool(self.time_budget_s))
-        f = self.adapt.lr_factor(self.clock.wall(), f)
-        if self.adapt.stop_requested:
-            return False
-        for group in self.optimizer.param_groups:
-            group["lr"] = group["base_lr"] * f
         self.anneal = cos_anneal_ratio(p, self.total, tc.anneal_end)
         if hasattr(self.model.sdf, "set_progress"):
             self.model.sdf.set_progress(coarse_to_fine(p, tc.coarse_to_fine_frac))
-        if self.model.occupancy is not None and self.step % tc.occupancy_every == 0:
-            self.adapt.refresh_occupancy(self.model, self.step)
+        start = self.adaptivity.before_step(StepStart(
+            step=self.step, wall=self.clock.wall(), progress=p, model=self.model,
+            lr_factor=scheduled_lr_factor(self.step, p, self.total, tc, budgeted=bool(self.time_budget_s))))
+        if start.stop:
+            return False
+        for group in self.optimizer.param_groups:
+            group["lr"] = group["base_lr"] * start.lr_factor
         return True
 
     def _train_step(self):
@@ -224,11 +227,12 @@ class TrainingRun:
         rays = self.sampler.sample(tc.batch_rays, generator=self.gen)
         if self.unlit_thr is not None:
             rays.unlit = rays.rgb.amax(-1) < self.unlit_thr
-        rays, left_out = self.adapt.thin_empty_rays(model, rays, self.step, generator=self.gen)
         loss_cfg = rs.loss_config(self.cfg.loss)
-        request = SurfaceRequest(lobe_split=needs_lobe_split(loss_cfg)) | self.adapt.request(self.step)
+        batch = self.adaptivity.on_batch(StepBatch(step=self.step, model=model, rays=rays, generator=self.gen,
+                                                   request=SurfaceRequest(lobe_split=needs_lobe_split(loss_cfg))))
+        rays, left_out = batch.rays, batch.left_out
         out = render_rays(model, rays, self.run_cfg.render, train=True, cos_anneal=self.anneal, generator=self.gen,
-                          request=request, shading=rs.shading())
+                          request=batch.request, shading=rs.shading())
         background_rays = None   # the misses left out still show the background: it alone renders them
         if left_out is not None:
             background_rays = (render_background_only(model, left_out, self.run_cfg.render, train=True,
@@ -258,11 +262,11 @@ class TrainingRun:
         return rays, out, losses
 
     def _after_step(self, rays, out, losses) -> None:
-        """Adaptivity, the weight average's restart, records, sync/held-out evaluations, checkpoints."""
+        """The rules, the weight average's restart, records, sync/held-out evaluations, checkpoints."""
         tc, step = self.cfg.train, self.step
         self._n_rays += len(rays)
         self._n_samples += out.n_samples
-        self.adapt.after_step(step, out, losses, model=self.model, rays=rays)
+        self.adaptivity.after_step(StepEnd(step=step, model=self.model, rays=rays, out=out, losses=losses))
         shading = (self.run_state.specular, self.run_state.diffuse_metal_weight)
         if self.ema is not None and shading != self._shading_seen:
             self.ema.reset(self.model)   # weights averaged across a change of the shading model do not fit it
@@ -292,7 +296,7 @@ class TrainingRun:
                     "samples_per_s": self._n_samples / dt,
                     "head_evals": out.n_head_evals, "nonfinite_steps": self.nonfinite,
                     "specular_on": bool(self.run_state.specular)})
-        rec.update(self.adapt.step_stats())
+        rec.update(self.adaptivity.step_stats())
         self.mlog.write(rec)
         self._t_log, self._n_rays, self._n_samples = self.clock.wall(), 0, 0
 
@@ -314,13 +318,13 @@ class TrainingRun:
                 h.on_evaluation(self, rec)
             self.mlog.write(rec)
             self.last_test = rec
-            self.adapt.on_test_eval(self.step, rec, progress=self.progress())
+            self.adaptivity.on_evaluation(EvaluationContext(self.step, rec, progress=self.progress()))
         self.last_eval_wall = self.clock.wall()
 
     def checkpoint(self) -> None:
         """``ckpt_<step>.pt`` and ``latest.pt``: weights, optimiser, RNG, run state, rule counters."""
         with self.clock.paused():
-            extra = {"nonfinite": self.nonfinite, "adaptivity": self.adapt.state(),
+            extra = {"nonfinite": self.nonfinite, "adaptivity": self.adaptivity.state_dict(),
                      "run_state": self.run_state.to_dict(), "config_name": self.cfg.name,
                      "world_from_norm": np.asarray(self.scene.world_from_norm, dtype=np.float64).tolist(),
                      "camera_up": [float(c) for c in self.camera_up]}
@@ -337,7 +341,7 @@ class TrainingRun:
                 h.on_checkpoint(self, self.step, str(self.latest))
 
     def _write_report(self, status: str) -> dict:
-        rep = self.adapt.report(step=self.step, status=status, nonfinite=self.nonfinite)
+        rep = self.adaptivity.report(step=self.step, status=status, nonfinite=self.nonfinite)
         if self.targets is not None and self.targets.split is not None:
             rep["split"] = self.targets.split   # which views were held out of training
         write_json_atomic(self.dir / "report.json", rep)

@@ -26,9 +26,12 @@ from __future__ import annotations
 import torch
 
 from nepf_core.train.decisions import Decision
+from nepf_core.train.rules.callback import Decisions, ReportContext, RuleCallback, StepBatch
 
 
-class EmptyRayRule:
+class EmptyRayRule(RuleCallback):
+    state_key = "empty_rays_rule"
+
     def __init__(self, cfg) -> None:
         """``cfg``: the run's :class:`~nepf_core.config.NePFConfig` (``rules.miss_keep``, ``train.adaptive``)."""
         self.cfg, self.rc = cfg, cfg.rules
@@ -36,20 +39,39 @@ class EmptyRayRule:
         """Share of the drawn rays left out at the last step (logged as ``rays_left_out``)."""
         self.total, self.count = 0.0, 0
 
+    # -- callbacks --
+    def on_batch(self, ctx: StepBatch) -> Decisions:
+        """Leave the batch's empty rays out (:meth:`thin`)."""
+        ctx.rays, ctx.left_out, decision = self.thin(ctx.model, ctx.rays, ctx.step, ctx.generator)
+        return [decision]
+
+    def step_stats(self) -> dict:
+        return {} if self.last is None else {"rays_left_out": self.last}
+
+    def on_report(self, ctx: ReportContext) -> Decisions:
+        left_out = self.mean_left_out()
+        if left_out is not None:
+            ctx.report["rays_left_out_fraction"] = left_out
+            ctx.report["rays_left_out_note"] = (
+                "mean over training steps of the share of drawn rays left out of the batch because they meet "
+                "no occupied cell (a random miss_keep share of those stays)")
+        return ()
+
     def mean_left_out(self) -> float | None:
         """Mean over training steps of the share of drawn rays left out (report.json)."""
         return self.total / self.count if self.count else None
 
-    def thin(self, model, rays, step: int, generator: torch.Generator | None,
-             first: bool) -> tuple[object, object | None, Decision | None]:
+    def thin(self, model, rays, step: int,
+             generator: torch.Generator | None) -> tuple[object, object | None, Decision | None]:
         """``rays`` (``R``) -> ``(kept, left_out, decision or None)``: ``kept`` the RayBatch of the
         hits and the kept misses (``R' <= R``, same order), ``left_out`` the other misses for the
         background alone (a RayBatch, or None when nothing was left out or the model has no
-        background); ``first``: no ``empty_rays`` decision was recorded yet
-        (it is recorded once)."""
+        background). The ``empty_rays`` decision is returned once, at the first step that leaves
+        rays out (the one at which ``total`` is still 0: a thinned step adds a share > 0)."""
         occ = getattr(model, "occupancy", None)
         if not self.cfg.train.adaptive or occ is None or int(occ.n_updates) == 0:
             return rays, None, None
+        first = self.total == 0.0
         from nepf_core.render.sampling import object_segment
         near, far, _, _ = object_segment(rays.origins, rays.directions, model.cfg.object_halfspace)
         hit = occ.ray_hits(rays.origins, rays.directions, near, far)
@@ -92,8 +114,8 @@ class EmptyRayRule:
         out.weight = torch.full((n_kept,), len(left) / n_kept, dtype=rays.origins.dtype, device=rays.origins.device)
         return out
 
-    def state(self) -> dict:
+    def state_dict(self) -> dict:
         return {"drop_sum": self.total, "drop_n": self.count}
 
-    def load_state(self, s: dict) -> None:
+    def load_state_dict(self, s: dict) -> None:
         self.total, self.count = s.get("drop_sum", 0.0), s.get("drop_n", 0)

@@ -9,14 +9,25 @@ curvature penalty mostly costs time, and it comes back if the field degrades.
 from __future__ import annotations
 
 from nepf_core.train.decisions import Decision
+from nepf_core.train.rules.callback import Decisions, RuleCallback, StepEnd
 
 
-class HessianRule:
-    def __init__(self, cfg) -> None:
+class HessianRule(RuleCallback):
+    state_key = "hessian_rule"
+
+    def __init__(self, cfg, run_state) -> None:
         """``cfg``: the run's :class:`~nepf_core.config.NePFConfig` (``rules``, ``train.adaptive``,
-        ``loss.w_hessian``)."""
-        self.cfg, self.rc = cfg, cfg.rules
+        ``loss.w_hessian``); ``run_state``: the run's, whose ``w_hessian`` the rule switches."""
+        self.cfg, self.rc, self.run_state = cfg, cfg.rules, run_state
         self.eik_ema: float | None = None
+
+    def after_step(self, ctx: StepEnd) -> Decisions:
+        """Fold the step's eikonal term into the EMA; at a check, switch the term when it should."""
+        self.observe(float(ctx.losses["loss_eik"].detach()) if "loss_eik" in ctx.losses else 0.0)
+        decision = self.decide(ctx.step, self.run_state.w_hessian)
+        if decision is not None:
+            self.run_state.w_hessian = self.cfg.loss.w_hessian if decision.value else 0.0
+        return [decision]
 
     def observe(self, eikonal: float) -> None:
         """Fold this step's eikonal residual into the EMA (every step, adaptivity on or off)."""
@@ -34,8 +45,8 @@ class HessianRule:
         return Decision("hessian_loss", want, f"eikonal residual EMA {self.eik_ema:.3f} "
                         f"{'>' if want else '<='} {rc.eik_thr}", step)
 
-    def state(self) -> dict:
+    def state_dict(self) -> dict:
         return {"eik_ema": self.eik_ema}
 
-    def load_state(self, s: dict) -> None:
+    def load_state_dict(self, s: dict) -> None:
         self.eik_ema = s.get("eik_ema")

@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from nepf_core.reframe import object_world_from_norm, reframe_scene
 from nepf_core.train.decisions import Decision
+from nepf_core.train.rules.callback import DataContext, Decisions, RuleCallback
 
 BACKGROUND_LEVEL = 0.01
 """Linear value above which a pixel outside the masks is not black (about 25/255 in sRGB)."""
@@ -27,6 +29,30 @@ MIN_FRAME_POINTS = 50
 """Without a support, the sparse points reframe the SDF's ball only when the load frame was guessed
 from the cameras (the frustum rule, not a ``scale_mat``) and at least this many of them lie within
 reach: the ball's 0.98-quantile radius then rests on at least one point beyond it."""
+
+
+class MaskRule(RuleCallback):
+    """The data's decisions, before the model is built: mask loss, background model and, for a
+    capture without masks, the object region and frame."""
+
+    def __init__(self, cfg, run_state) -> None:
+        """``cfg``: the run's :class:`~nepf_core.config.NePFConfig` (``loss.w_mask``); ``run_state``:
+        the run's, whose ``use_mask_loss``, ``background`` and ``object_halfspace`` the rule sets."""
+        self.cfg, self.run_state = cfg, run_state
+
+    def on_data(self, ctx: DataContext) -> Decisions:
+        """Decide from ``ctx.scene``; with a support plane, ``ctx.scene`` becomes the same views in
+        the object's frame (held-out views must follow: ``reframe_scene(test, scene.world_from_norm)``)
+        and ``ctx.surface_points`` the points in the object region."""
+        scene, rs = ctx.scene, self.run_state
+        lit = lit_outside_masks(scene.images, scene.masks) if scene.has_masks else 0.0
+        rs.use_mask_loss, rs.background, decisions = decide_masks(scene.has_masks, self.cfg.loss.w_mask, lit)
+        if rs.background and not scene.has_masks:
+            rs.object_halfspace, region, ctx.surface_points, frame = decide_object_region(scene)
+            decisions.extend(region)
+            if frame is not None:
+                ctx.scene = reframe_scene(scene, object_world_from_norm(scene.world_from_norm, *frame))
+        return decisions
 
 
 def lit_outside_masks(images, masks) -> float:

@@ -10,6 +10,39 @@ reported as ``occupied_fraction``.
 from __future__ import annotations
 
 from nepf_core.train.decisions import Decision
+from nepf_core.train.rules.callback import (DataContext, Decisions, ModelContext, ReportContext, RuleCallback,
+                                            StepStart)
+
+
+class OccupancyRule(RuleCallback):
+    """The occupancy grid: what it is used for, its visual-hull start and its refreshes."""
+
+    def __init__(self, cfg) -> None:
+        """``cfg``: the run's :class:`~nepf_core.config.NePFConfig` (``model.occupancy_resolution``,
+        ``train.occupancy_every``, ``train.adaptive``)."""
+        self.cfg = cfg
+        self.occupied_fraction: float | None = None
+        """Share of the cells occupied after the last refresh (None before the first)."""
+
+    def on_data(self, ctx: DataContext) -> Decisions:
+        return [empty_space_decision(self.cfg)]
+
+    def on_model(self, ctx: ModelContext) -> Decisions:
+        return [] if ctx.model.occupancy is None else [carve_visual_hull(ctx.model, ctx.scene, self.cfg)]
+
+    def before_step(self, ctx: StepStart) -> Decisions:
+        """Every ``train.occupancy_every`` steps (from step 0), with the step's grid levels set."""
+        if getattr(ctx.model, "occupancy", None) is not None and ctx.step % self.cfg.train.occupancy_every == 0:
+            self.occupied_fraction = refresh_occupancy(ctx.model, ctx.step)
+        return ()
+
+    def step_stats(self) -> dict:
+        return {} if self.occupied_fraction is None else {"occupied_fraction": self.occupied_fraction}
+
+    def on_report(self, ctx: ReportContext) -> Decisions:
+        if self.occupied_fraction is not None:
+            ctx.report["occupied_fraction"] = self.occupied_fraction
+        return ()
 
 
 def empty_space_decision(cfg) -> Decision | None:

@@ -15,8 +15,9 @@ Then the learning-rate factor follows a cosine from its value ``f0`` at the plat
 ``f = alpha + (f0 - alpha) (1 + cos(pi q)) / 2``, ``q = (wall - t_plateau) / D``, never above the
 regular schedule, and the run stops at ``q >= 1`` (the regular schedule anneals only at the end
 of the budget; a run stopped early would otherwise end at a high learning rate). The clock
-restarts (:meth:`PlateauRule.restart`) when the shading model changes, because the held-out PBR
-PSNR dips while the material adapts.
+restarts (:meth:`PlateauRule.restart`) when the shading model changes (the lobe switched, or
+its fade ended: :func:`shading_model`), because the held-out PBR PSNR dips while the material
+adapts.
 """
 
 from __future__ import annotations
@@ -24,13 +25,25 @@ from __future__ import annotations
 import math
 
 from nepf_core.train.decisions import Decision
+from nepf_core.train.rules.callback import Decisions, EvaluationContext, RuleCallback, StepEnd, StepStart
 
 
-class PlateauRule:
-    def __init__(self, cfg, iters_fixed: bool = True) -> None:
-        """``cfg``: the run's :class:`~nepf_core.config.NePFConfig`; ``iters_fixed``: the user fixed
-        the iteration count (no plateau stop)."""
+def shading_model(run_state) -> tuple[bool, bool]:
+    """``(lobe on, fade under way)``: what the PBR image is shaded with, as far as the plateau
+    clock cares (the fade weight's value within a fade does not restart it, its end does)."""
+    return bool(run_state.specular), run_state.diffuse_metal_weight > 0.0
+
+
+class PlateauRule(RuleCallback):
+    state_key = "plateau_rule"
+
+    def __init__(self, cfg, run_state, iters_fixed: bool = True) -> None:
+        """``cfg``: the run's :class:`~nepf_core.config.NePFConfig`; ``run_state``: the run's (read:
+        a change of the shading model restarts the clock); ``iters_fixed``: the user fixed the
+        iteration count (no plateau stop)."""
         self.cfg, self.rc, self.iters_fixed = cfg, cfg.rules, iters_fixed
+        self.run_state = run_state
+        self.shading_seen = shading_model(run_state)
         self.plateaued = False
         self.stop_requested = False
         self.best = -math.inf
@@ -39,6 +52,25 @@ class PlateauRule:
         self.recent: list[float] = []
         self.armed = False
         self.cool_start = self.cool_len = self.cool_f0 = None
+
+    # -- callbacks --
+    def before_step(self, ctx: StepStart) -> Decisions:
+        """The cool-down's learning-rate factor, and the stop at its end."""
+        self.shading_seen = shading_model(self.run_state)   # the run state as the step starts (restored on resume)
+        ctx.lr_factor = self.lr_factor(ctx.wall, ctx.lr_factor)
+        ctx.stop = ctx.stop or self.stop_requested
+        return ()
+
+    def after_step(self, ctx: StepEnd) -> Decisions:
+        """Restart the clock when the rules before it changed the shading model in this step."""
+        now = shading_model(self.run_state)
+        if now != self.shading_seen:
+            self.restart()
+        self.shading_seen = now
+        return ()
+
+    def on_evaluation(self, ctx: EvaluationContext) -> Decisions:
+        return [self.on_test_eval(ctx.step, ctx.record, ctx.progress)]
 
     @property
     def min_progress(self) -> float:
@@ -115,12 +147,12 @@ class PlateauRule:
             return alpha
         return min(f_now, alpha + (self.cool_f0 - alpha) * 0.5 * (1.0 + math.cos(math.pi * max(q, 0.0))))
 
-    def state(self) -> dict:
+    def state_dict(self) -> dict:
         return {"best": self.best if math.isfinite(self.best) else None, "since_best": self.evals_since_best,
                 "best_wall": self.best_wall, "plateau_armed": self.armed, "plateaued": self.plateaued,
                 "recent": list(self.recent), "cool": [self.cool_start, self.cool_len, self.cool_f0]}
 
-    def load_state(self, s: dict) -> None:
+    def load_state_dict(self, s: dict) -> None:
         self.best = s.get("best") if s.get("best") is not None else -math.inf
         self.evals_since_best = s.get("since_best", 0)
         self.best_wall = s.get("best_wall")

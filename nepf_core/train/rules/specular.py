@@ -31,17 +31,30 @@ from __future__ import annotations
 
 import math
 
-from nepf_core.train.decisions import Decision
+import numpy as np
+import torch
+
 from nepf_core.render.neus import foreground
+from nepf_core.render.surface import SurfaceRequest
+from nepf_core.train.decisions import Decision
+from nepf_core.train.rules.callback import (DataContext, Decisions, ReportContext, RuleCallback, StepBatch,
+                                            StepEnd)
 from nepf_core.train.rules.lobe_evidence import batch_lobe_evidence, lit_view_spread
 
 
-class SpecularRule:
-    def __init__(self, cfg) -> None:
+class SpecularRule(RuleCallback):
+    state_key = "specular_rule"
+
+    def __init__(self, cfg, run_state) -> None:
         """``cfg``: the run's :class:`~nepf_core.config.NePFConfig` (``rules``, ``train.adaptive``,
-        ``train.iters``, ``loss.w_albedo_flat``)."""
-        self.cfg, self.rc = cfg, cfg.rules
+        ``train.iters``, ``loss.w_albedo_flat``); ``run_state``: the run's, whose lobe switch
+        (``specular``) and fade weight (``diffuse_metal_weight``) the rule sets."""
+        self.cfg, self.rc, self.run_state = cfg, cfg.rules, run_state
         self.enabled = bool(cfg.train.adaptive)
+        self.cams: torch.Tensor | None = None
+        """``[C, 3]`` the training cameras' centres (for the view spread), or None."""
+        self.checking = False
+        """The render of the step under way carries this rule's evidence (its request at :meth:`on_batch`)."""
         self.diffuse_streak = 0
         self.return_streak = 0
         self.highlight_vote: tuple[int, str] | None = None   # (step, reason) of the last residual vote
@@ -50,6 +63,39 @@ class SpecularRule:
         self.lobe_gain: float | None = None
         self.fade_start: int | None = None
         self.stats: dict = {}
+
+    # -- callbacks --
+    def on_data(self, ctx: DataContext) -> Decisions:
+        c2w = getattr(ctx.scene, "c2w", None)   # the cameras of the frame the run trains in
+        self.cams = None if c2w is None else torch.as_tensor(np.asarray(c2w)[:, :3, 3], dtype=torch.float32)
+        return ()
+
+    def on_batch(self, ctx: StepBatch) -> Decisions:
+        """At a check (every ``check_every`` steps), ask the render for the lobe split."""
+        self.checking = self.wants_evidence(ctx.step)
+        if self.checking:
+            ctx.request = ctx.request | SurfaceRequest(lobe_split=True)
+        return ()
+
+    def after_step(self, ctx: StepEnd) -> Decisions:
+        """After a check's step: read its evidence (:meth:`observe`); every step: the fade;
+        after a check: the lobe decision (:meth:`decide`)."""
+        check, self.checking = self.checking, False
+        rs = self.run_state
+        if check and ctx.rays is not None:
+            self.observe(ctx.step, ctx.model, ctx.out, ctx.rays, self.cams, rs.specular)
+        if not self.enabled:
+            return ()
+        w = self.fade_weight(ctx.step, rs.specular, rs.diffuse_metal_weight)
+        if w is not None:
+            rs.diffuse_metal_weight = w
+        return self.decide(ctx.step, ctx.out, rs.specular) if check else ()
+
+    def on_report(self, ctx: ReportContext) -> Decisions:
+        """A lobe kept to the end gets a record of its last check's numbers."""
+        if self.enabled and self.run_state.specular and self.stats and not ctx.decided("specular_lobe"):
+            return [self.kept_report(ctx.step)]
+        return ()
 
     def wants_evidence(self, step: int) -> bool:
         return self.enabled and step > 0 and step % self.rc.check_every == 0
@@ -142,9 +188,12 @@ class SpecularRule:
         return []
 
     def _switch(self, on: bool, step: int, reason: str) -> list[Decision]:
+        """Switch the lobe in the run state; off: the fade starts at weight 1 (the same image)."""
         self.diffuse_streak = self.return_streak = 0
+        self.run_state.specular = on
         if not on:
             self.fade_start = step
+            self.run_state.diffuse_metal_weight = 1.0
         out = [Decision("specular_lobe", on, reason, step)]
         if self.cfg.loss.w_albedo_flat > 0:
             out.append(Decision("albedo_flatness_prior", not on,
@@ -164,17 +213,17 @@ class SpecularRule:
             f"{st['specular_share']:.1%} (drop below {rc.spec_thr:.0%})"
             + ("" if gain is None else f", and without it the surface error would be {gain:+.0%}"), step)
 
-    def step_stats(self, specular_on: bool) -> dict:
+    def step_stats(self) -> dict:
         s = dict(self.stats)
-        if self.enabled and not specular_on:
+        if self.enabled and not self.run_state.specular:
             s["lobe_return_votes"] = self.return_streak   # checks in a row that asked for the lobe back
         return s
 
-    def state(self) -> dict:
+    def state_dict(self) -> dict:
         return {"streak": self.diffuse_streak, "return_streak": self.return_streak,
                 "view_spread": self.view_spread, "fade_start": self.fade_start}
 
-    def load_state(self, s: dict) -> None:
+    def load_state_dict(self, s: dict) -> None:
         self.diffuse_streak = s.get("streak", 0)
         self.return_streak = s.get("return_streak", 0)
         self.view_spread = s.get("view_spread")
