@@ -16,11 +16,12 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from jobstore.engine import ping as ping_store
 from jobstore.queue import ping_broker
 from jobstore.reconcile import Reconciler
+from jobstore.storage import StorageUnavailable
 
 from .body_limit import BodyLimit, upload_body_cap, upload_too_large
 from .header_limit import HeaderLimit
-from .errors import ApiError, api_error_handler, http_error_handler, internal_error_handler
-from .routes import jobs
+from .errors import ApiError, api_error_handler, http_error_handler, internal_error_handler, storage_error_handler
+from .routes import artifacts, jobs
 from .schemas import Health
 from .service import Service
 from .settings import Settings, get_settings
@@ -55,6 +56,7 @@ def create_app(settings: Optional[Settings] = None, *, reconciler: Optional[bool
     app.state.service = svc
     app.add_exception_handler(ApiError, api_error_handler)
     app.add_exception_handler(StarletteHTTPException, http_error_handler)
+    app.add_exception_handler(StorageUnavailable, storage_error_handler)
     app.add_exception_handler(Exception, internal_error_handler)
     app.add_middleware(BodyLimit, caps={("POST", "/jobs"): upload_body_cap(settings)},
                        error=lambda: upload_too_large(settings))
@@ -67,6 +69,7 @@ def create_app(settings: Optional[Settings] = None, *, reconciler: Optional[bool
     # outermost: a head over the cap is refused before CORS, the body cap or any route sees it
     app.add_middleware(HeaderLimit, limit=settings.max_header_bytes)
     app.include_router(jobs.router)
+    app.include_router(artifacts.router)
 
     @app.get("/healthz", response_model=Health, tags=["health"], summary="The process is up")
     def healthz():
@@ -78,7 +81,7 @@ def create_app(settings: Optional[Settings] = None, *, reconciler: Optional[bool
         checks: dict = {}
         ok = True
         for name, fn in (("database", lambda: ping_store(settings.db_url)),
-                         ("broker", lambda: ping_broker(svc.celery))):
+                         ("broker", lambda: ping_broker(svc.celery)), ("storage", svc.storage.ping)):
             try:
                 await run_in_threadpool(fn)
                 checks[name] = "ok"

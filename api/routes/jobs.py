@@ -6,29 +6,25 @@ import asyncio
 import datetime as dt
 import json
 import logging
-import os
 import re
 import shutil
 import time
-from pathlib import Path
 from typing import Annotated, Optional
 
 from fastapi import APIRouter, Header, Query, Request
 from fastapi.concurrency import run_in_threadpool
-from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
+from fastapi.responses import JSONResponse, Response, StreamingResponse
 from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 
 from jobstore.models import ACTIVE, TERMINAL, Job, new_id, utcnow
 from jobstore.queue import enqueue
+from jobstore.storage import StorageUnavailable
 
-from ..artifacts import ARTIFACT_MEDIA_TYPES, CONTENT_TYPES, content_type_for, safe_artifact_path  # noqa: F401
 from ..auth import check_ticket, make_ticket
 from ..deps import CredsDep, OwnerDep, ServiceDep, owner_from_header
-from ..downloads import content_disposition
 from ..errors import ApiError, not_found
-from ..metrics_index import METRICS
-from ..schemas import (Artifact, ArtifactList, ErrorBody, JobList, JobPublic, MetricsPage, Ticket)
+from ..schemas import ErrorBody, JobList, JobPublic, MetricsPage, Ticket
 from ..job_config import parse_config, resolve_holdout_every
 from ..uploads import check_images, dataset_root, receive_multipart, validate_dataset
 from ..zip_safety import MB, check_and_extract_zip
@@ -72,10 +68,6 @@ def _load(svc, owner: str, job_id: str) -> Job:
     return job
 
 
-def run_dir(svc, job_id: str) -> Path:
-    return svc.settings.jobs_path / job_id / "run"
-
-
 def json_response(model, status: int = 200, headers: Optional[dict] = None) -> JSONResponse:
     return JSONResponse(model.model_dump(mode="json"), status_code=status, headers=headers)
 
@@ -114,7 +106,7 @@ async def create_job(request: Request, svc: ServiceDep, owner: OwnerDep,
     max_bytes = int(settings.max_upload_mb * MB)   # the whole body is capped by api.body_limit
     staging = settings.uploads_path / new_id()
     staging.mkdir(parents=True)
-    job_dir: Optional[Path] = None
+    stored: Optional[str] = None   # a job id whose files were stored but not committed
     try:
         up = await receive_multipart(request.stream(), request.headers.get("content-type", ""), staging, max_bytes)
         cfg = parse_config(up.config_raw, settings)
@@ -134,10 +126,9 @@ async def create_job(request: Request, svc: ServiceDep, owner: OwnerDep,
         root, summary = await run_in_threadpool(heavy)
         cfg, summary = resolve_holdout_every(cfg, summary)
         job_id = new_id()
-        job_dir = settings.jobs_path / job_id
-        job_dir.mkdir(parents=True)
-        os.rename(root, job_dir / "dataset")
-        (job_dir / "run").mkdir()
+        stored = job_id
+        # before the job row: a job row always has its whole dataset (in the data dir or the bucket)
+        await run_in_threadpool(svc.storage.put_dataset, job_id, root)
         summary = {k: v for k, v in summary.items() if k != "ok"}
         job = Job(id=job_id, owner=owner, name=cfg.get("name"), status="queued", config=cfg, dataset=summary,
                   queue=settings.job_queue, idempotency_key=idempotency_key, request_hash=up.sha256,
@@ -151,21 +142,28 @@ async def create_job(request: Request, svc: ServiceDep, owner: OwnerDep,
             await run_in_threadpool(insert)
         except IntegrityError:
             # a concurrent request with the same Idempotency-Key won the race
-            shutil.rmtree(job_dir, ignore_errors=True)
-            job_dir = None
+            await run_in_threadpool(svc.storage.delete_job, job_id)
+            stored = None
             existing = await run_in_threadpool(_find_idem, svc, owner, idempotency_key or "")
             if existing is None:
                 raise
             return _replay(existing, up.sha256)
-        job_dir = None  # committed: keep it
+        stored = None  # committed: keep it
         await run_in_threadpool(_send, svc, job_id, settings.job_queue)
         with svc.Session() as s:
             job = s.get(Job, job_id)
         return json_response(to_public(job), 202, {"Location": f"/jobs/{job_id}"})
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-        if job_dir is not None:
-            shutil.rmtree(job_dir, ignore_errors=True)
+        if stored is not None:
+            await run_in_threadpool(_delete_quietly, svc, stored)
+
+
+def _delete_quietly(svc, job_id: str) -> None:
+    try:
+        svc.storage.delete_job(job_id)
+    except Exception as exc:  # noqa: BLE001 - the request fails anyway; say so in the log
+        log.warning("could not delete the files of the rejected job %s: %s", job_id, exc)
 
 
 def _send(svc, job_id: str, queue: str) -> None:
@@ -223,18 +221,13 @@ async def get_job(job_id: str, svc: ServiceDep, owner: OwnerDep):
     return Response(body, media_type="application/json")
 
 
-def read_metrics(path: Path, since: int, limit: int) -> tuple[list[dict], int]:
-    """Records ``since..since+limit`` of a JSON-lines file (complete lines only), incrementally."""
-    return METRICS.read(path, since, limit)
-
-
 @router.get("/jobs/{job_id}/metrics", response_model=MetricsPage, responses=ERRORS,
             summary="Metric series (metrics.jsonl); ?since=<next_since> returns only new records")
 def get_metrics(job_id: str, svc: ServiceDep, owner: OwnerDep,
                 since: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0,
                 limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000):
     job = _load(svc, owner, job_id)
-    recs, nxt = read_metrics(run_dir(svc, job.id) / "metrics.jsonl", since, limit)
+    recs, nxt = svc.storage.read_metrics(job.id, since, limit)
     return MetricsPage(records=recs, since=since, next_since=nxt, status=job.status)
 
 
@@ -276,7 +269,6 @@ async def job_events(job_id: str, request: Request, svc: ServiceDep, creds: Cred
     cursor = since or 0
     if last_event_id and last_event_id.isdigit():
         cursor = int(last_event_id)
-    mpath = run_dir(svc, job.id) / "metrics.jsonl"
     poll = 0.5
 
     def load_state():
@@ -295,7 +287,10 @@ async def job_events(job_id: str, request: Request, svc: ServiceDep, creds: Cred
             if cur is None:
                 yield _sse("end", {"status": "deleted"})
                 return
-            recs, nxt = await run_in_threadpool(read_metrics, mpath, cursor, 1000)
+            try:
+                recs, nxt = await run_in_threadpool(svc.storage.read_metrics, job.id, cursor, 1000)
+            except StorageUnavailable:   # the stream goes on; the records come once the store is back
+                recs, nxt = [], cursor
             for i, rec in enumerate(recs):
                 yield _sse("metrics", rec, cursor + i + 1)
             cursor = nxt
@@ -316,48 +311,6 @@ async def job_events(job_id: str, request: Request, svc: ServiceDep, creds: Cred
 
     return StreamingResponse(gen(), media_type="text/event-stream",
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
-
-
-# ------------------------------------------------------------------------------- artifacts
-def _manifest(svc, job_id: str) -> Optional[dict]:
-    try:
-        data = json.loads((run_dir(svc, job_id) / "manifest.json").read_text())
-        return data if isinstance(data, dict) else None
-    except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError):
-        return None
-
-
-@router.get("/jobs/{job_id}/artifacts", response_model=ArtifactList, responses=ERRORS,
-            summary="The export manifest, with download URLs")
-def list_artifacts(job_id: str, svc: ServiceDep, owner: OwnerDep):
-    job = _load(svc, owner, job_id)
-    man = _manifest(svc, job.id)
-    items = []
-    for a in (man or {}).get("artifacts", []) or []:
-        if not isinstance(a, dict) or not isinstance(a.get("path"), str):
-            continue
-        p = a["path"]
-        items.append(Artifact(kind=a.get("kind"), path=p, bytes=a.get("bytes"), sha256=a.get("sha256"),
-                              content_type=content_type_for(p), url=f"/jobs/{job.id}/artifacts/{p}"))
-    frame = (man or {}).get("frame")
-    return ArtifactList(artifacts=items, manifest=man is not None, status=job.status,
-                        frame=frame if isinstance(frame, dict) else None)
-
-
-@router.get("/jobs/{job_id}/artifacts/{path:path}", responses={**ERRORS, 200: {
-    "content": {t: {} for t in ARTIFACT_MEDIA_TYPES}, "description": "The file, with its content type"}},
-    response_class=FileResponse, summary="Download one artifact (asset.glb, textures, previews, metrics...) as "
-                                         "an attachment named <job name>-<artifact>; Range and ETag supported")
-def get_artifact(job_id: str, path: str, svc: ServiceDep, owner: OwnerDep):
-    job = _load(svc, owner, job_id)
-    target = safe_artifact_path(run_dir(svc, job.id), path)
-    if target is None:
-        raise not_found("artifact")
-    # FileResponse answers Range (206, If-Range) and sends ETag / Last-Modified; the name a browser
-    # or a script saves the file under: "<job name>-<artifact>" (api/downloads.py)
-    return FileResponse(target, media_type=content_type_for(target.name), filename=None,
-                        headers={"Cache-Control": "private, max-age=0",
-                                 "Content-Disposition": content_disposition(job.name, job.id, path)})
 
 
 # ------------------------------------------------------------------------------- control
@@ -385,11 +338,15 @@ def cancel_job(job_id: str, svc: ServiceDep, owner: OwnerDep):
                summary="Delete a finished job and its files")
 def delete_job(job_id: str, svc: ServiceDep, owner: OwnerDep):
     job = _load(svc, owner, job_id)
+    if job.status not in TERMINAL:
+        raise ApiError(409, "job_active", "job is still queued or running; cancel it first")
+    # files first (a finished job never runs again): if the store is down this is a 503 and the
+    # job stays, instead of a job gone with its objects left behind
+    svc.storage.delete_job(job.id)
     with svc.Session() as s:
         res = s.execute(Job.__table__.delete().where(Job.id == job.id, Job.status.in_(TERMINAL)))
         s.commit()
     if res.rowcount == 0:
         raise ApiError(409, "job_active", "job is still queued or running; cancel it first")
     svc.job_cache.drop(job.id)
-    shutil.rmtree(svc.settings.jobs_path / job.id, ignore_errors=True)
     return Response(status_code=204)
