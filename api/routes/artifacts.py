@@ -45,7 +45,8 @@ def get_artifact(job_id: str, path: str, request: Request, svc: ServiceDep, owne
     ref = svc.storage.artifact(job.id, path)
     if ref is None:
         raise not_found("artifact")
-    ctype = content_type_for(path.rsplit("/", 1)[-1])
+    # a local file's type comes from its name with links resolved (as before the storage layer)
+    ctype = content_type_for(ref.path.name if ref.path is not None else path.rsplit("/", 1)[-1])
     headers = {"Cache-Control": "private, max-age=0",
                "Content-Disposition": content_disposition(job.name, job.id, path)}
     if ref.path is not None:

@@ -112,6 +112,12 @@ class RemoteWorkspace(Workspace):
 
     # ------------------------------------------------------------------ during the run
     def on_checkpoint(self, step: int, path: str) -> None:
+        try:
+            self._snapshot()
+        except OSError as exc:   # a full scratch disk must not fail the training: the next one may pass
+            log.warning("checkpoint %s not kept for upload: %s", step, exc)
+
+    def _snapshot(self) -> None:
         ck = self.run_dir / "checkpoints"
         self._seq += 1
         snap = self.scratch / f"snapshot-{self._seq}"
