@@ -21,6 +21,7 @@ from jobstore.models import ACTIVE, TERMINAL, Job, new_id, utcnow
 from jobstore.queue import enqueue
 from jobstore.storage import StorageUnavailable
 
+from ..artifacts import CONTENT_TYPES, content_type_for  # noqa: F401 - importable from here (tests)
 from ..auth import check_ticket, make_ticket
 from ..deps import CredsDep, OwnerDep, ServiceDep, owner_from_header
 from ..errors import ApiError, not_found

@@ -47,7 +47,7 @@ class Bucket:
         self.bucket, self.prefix = parse_storage_url(url)
         endpoint = os.environ.get("AWS_ENDPOINT_URL_S3") or os.environ.get("AWS_ENDPOINT_URL")
         self.where = f"{url} ({endpoint or 'AWS S3'})"
-        cfg = Config(connect_timeout=connect_timeout, read_timeout=read_timeout,
+        cfg = Config(connect_timeout=connect_timeout, read_timeout=read_timeout, signature_version="s3v4",
                      retries={"max_attempts": 3, "mode": "standard"},
                      s3={"addressing_style": "path" if endpoint else "auto"},
                      max_pool_connections=32)

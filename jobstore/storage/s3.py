@@ -57,7 +57,10 @@ class MetricsCache:
         else:
             end = data.rfind(b"\n") + 1
             data = data[:end]                      # complete lines only
-            offsets = [0] + [i + 1 for i in range(end) if data[i] == 10]
+            offsets, pos = [0], data.find(b"\n")
+            while pos >= 0:
+                offsets.append(pos + 1)
+                pos = data.find(b"\n", pos + 1)
             with self._lock:
                 self._d[rel] = (etag, data, offsets)
                 self._d.move_to_end(rel)

@@ -1,0 +1,61 @@
+"""The storage layer's pure parts: which artifact paths may name an object, the one-range parser of
+streamed downloads, the storage URL, backend selection and the shared-secret rule. The S3 backend
+itself is tested against a real SeaweedFS server in tests/test_service_object_store.py."""
+
+from __future__ import annotations
+
+import pytest
+from pydantic import ValidationError
+
+from api.service import StartupError, check_secret
+from api.settings import Settings
+from jobstore.storage import artifact_rel, open_storage
+from jobstore.storage.bucket import parse_storage_url
+from jobstore.storage.local import LocalStorage
+from jobstore.storage.s3 import _range
+
+
+@pytest.mark.parametrize("rel,ok", [
+    ("asset.glb", True), ("textures/orm.png", True), ("previews/view_000.png", True),
+    ("checkpoints/latest.pt", False), ("checkpoints", False), ("../dataset/cameras.npz", False),
+    ("a/../b", False), ("/etc/passwd", False), ("a//b", False), ("./a", False), ("a\\b", False),
+    ("a\x00b", False), ("", False)])
+def test_artifact_paths(rel, ok):
+    assert (artifact_rel(rel) is not None) == ok
+
+
+@pytest.mark.parametrize("header,size,want", [
+    ("bytes=0-3", 10, (0, 3)), ("bytes=5-", 10, (5, 9)), ("bytes=-4", 10, (6, 9)), ("bytes=8-100", 10, (8, 9)),
+    ("bytes=10-12", 10, (10, 9)),          # past the end: the caller answers 416
+    ("bytes=0-1,4-5", 10, None),           # several ranges: the whole file (RFC 9110 allows it)
+    ("bytes=x-3", 10, None), (None, 10, None), ("items=0-1", 10, None), ("bytes=5-3", 10, None)])
+def test_single_range(header, size, want):
+    assert _range(header, size) == want
+
+
+def test_storage_url():
+    assert parse_storage_url("s3://bucket") == ("bucket", "")
+    assert parse_storage_url("s3://bucket/a/b/") == ("bucket", "a/b/")
+    with pytest.raises(ValueError):
+        parse_storage_url("http://bucket/x")
+    with pytest.raises(ValidationError):
+        Settings(storage_url="gs://bucket/x")
+
+
+def test_default_backend_is_the_data_dir_and_needs_no_secret(tmp_path):
+    s = Settings(data_dir=tmp_path)
+    storage = open_storage(s)
+    assert isinstance(storage, LocalStorage) and not storage.remote
+    check_secret(s, storage)                                  # embedded default: nothing required
+    ws = storage.workspace("0" * 32)
+    assert ws.run_dir == s.jobs_path / ("0" * 32) / "run" and ws.data_dir == s.jobs_path / ("0" * 32) / "dataset"
+
+
+def test_object_store_needs_a_shared_secret(tmp_path, monkeypatch):
+    monkeypatch.setenv("AWS_ENDPOINT_URL", "http://127.0.0.1:9")
+    s = Settings(data_dir=tmp_path, storage_url="s3://bucket/prefix")
+    storage = open_storage(s)
+    assert storage.remote
+    with pytest.raises(StartupError, match="NEPF_SECRET_KEY"):
+        check_secret(s, storage)
+    check_secret(Settings(data_dir=tmp_path, storage_url="s3://bucket/prefix", secret_key="k"), storage)
