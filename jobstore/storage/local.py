@@ -10,8 +10,6 @@ import shutil
 from pathlib import Path
 from typing import Optional
 
-from nepf_core.resume import checkpoint_step
-
 from . import PRIVATE_DIRS, ArtifactRef, Storage, Workspace, artifact_rel
 from .metrics_index import METRICS
 
@@ -43,6 +41,8 @@ class LocalWorkspace(Workspace):
         self.run_dir = job_dir / "run"
 
     def checkpoint_step(self) -> Optional[int]:
+        from nepf_core.resume import checkpoint_step   # stdlib only; the API never calls this
+
         return checkpoint_step(self.run_dir)
 
 

@@ -22,6 +22,7 @@ import json
 import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
+from datetime import timezone
 from email.utils import format_datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Optional
@@ -151,7 +152,7 @@ class S3Storage(Storage):
         etag, size = head.get("ETag", ""), int(head.get("ContentLength", 0))
         headers = {"ETag": etag, "Accept-Ranges": "bytes"}
         if head.get("LastModified") is not None:
-            headers["Last-Modified"] = format_datetime(head["LastModified"], usegmt=True)
+            headers["Last-Modified"] = format_datetime(head["LastModified"].astimezone(timezone.utc), usegmt=True)
         if etag and req.get("if-none-match") in (etag, "*"):
             return ObjectStream(304, headers, iter(()), lambda: None)
         rng = _range(req.get("range"), size)
