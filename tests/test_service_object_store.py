@@ -210,3 +210,30 @@ def test_store_unreachable_mid_job_the_job_goes_on_and_ends_when_it_returns(stac
     recs = httpx.get(f"{base}/jobs/{jid}/metrics", headers=h).json()["records"]
     assert [r["step"] for r in recs if "kind" not in r] == list(range(1, 101))
     assert httpx.get(f"{base}/jobs/{jid}/artifacts/asset.glb", headers=h).status_code == 200
+
+
+def test_kill9_real_pipeline_resumes_from_the_stored_checkpoint(stack, worker):
+    """The same crash with the real core (`tiny`, CPU): worker 2, on a fresh data dir, downloads
+    `checkpoints/latest.pt` from the bucket and continues; each step's record appears once."""
+    base, h, weed = stack["base"], stack["h"], stack["weed"]
+    env = dict(REAL_PIPELINE_ENV, NEPF_CHECKPOINT_EVERY="2", NEPF_LEASE_S="4")
+    w1 = worker("real-w1", **env)
+    iters = 200
+    jid = upload(base, h, real_scene_zip(stack["tmp"]), {"preset": "tiny", "iters": iters, "holdout_every": 0}).json()["id"]
+    ck_key = f"{PREFIX}/jobs/{jid}/run/checkpoints/latest.json"
+    wait_for(lambda: json.loads(weed.read(ck_key))["step"] >= 4, 240, what="a stored checkpoint")
+    w1.kill9()
+    stored = json.loads(weed.read(ck_key))["step"]
+    assert stored < iters
+    worker("real-w2", **env)
+    final = wait_status(base, h, jid, ("succeeded", "failed"), 420)
+    assert final["status"] == "succeeded", final
+    log = final["delivery"]["attempt_log"]
+    assert final["delivery"]["attempts"] == 2 and len(log) == 2, log
+    assert stored + 1 <= log[1]["first_step"] <= iters and log[1]["first_step"] % 2 == 1, (log, stored)
+    recs = httpx.get(f"{base}/jobs/{jid}/metrics", headers=h).json()["records"]
+    train = [r["step"] for r in recs if r.get("kind") == "train"]
+    assert train == list(range(5, iters + 1, 5)), [s for s in set(train) if train.count(s) > 1]
+    arts = httpx.get(f"{base}/jobs/{jid}/artifacts", headers=h).json()
+    assert any(a["path"].endswith(".glb") for a in arts["artifacts"])
+    assert files_under(stack["a"]) == ["local-token"]

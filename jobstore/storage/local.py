@@ -52,10 +52,6 @@ class LocalStorage(Storage):
     def __init__(self, jobs_path: Path) -> None:
         self.jobs_path = Path(jobs_path)
 
-    def ping(self) -> None:
-        if not self.jobs_path.is_dir():
-            raise RuntimeError(f"{self.jobs_path} is not a folder")
-
     def put_dataset(self, job_id: str, root: Path) -> None:
         job_dir = self.jobs_path / job_id
         job_dir.mkdir(parents=True)
