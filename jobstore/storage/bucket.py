@@ -50,6 +50,10 @@ class Bucket:
         cfg = Config(connect_timeout=connect_timeout, read_timeout=read_timeout, signature_version="s3v4",
                      retries={"max_attempts": 3, "mode": "standard"},
                      s3={"addressing_style": "path" if endpoint else "auto"},
+                     # checksums only where S3 requires them: S3-compatible stores differ in which of
+                     # the newer flexible checksums (botocore >= 1.36's default) they accept
+                     request_checksum_calculation="when_required",
+                     response_checksum_validation="when_required",
                      max_pool_connections=32)
         self.client = boto3.session.Session().client("s3", endpoint_url=endpoint or None, config=cfg)
 
