@@ -121,6 +121,28 @@ def test_kill9_worker_resumes_on_a_fresh_worker_from_the_stored_checkpoint(stack
     assert files_under(stack["a"]) == ["local-token"]
 
 
+
+def test_sigterm_worker_stores_its_checkpoint_and_the_job_moves_to_another_machine(stack, worker):
+    """A worker stopped with SIGTERM (docker compose stop) re-queues its job after its last
+    checkpoint reached the bucket; a worker on another data dir resumes it from there."""
+    base, h, weed = stack["base"], stack["h"], stack["weed"]
+    w1 = worker("term1")
+    jid = upload(base, h, dataset_zip_bytes(stack["tmp"] / "t"), {"preset": "tiny", "iters": 150}).json()["id"]
+    wait_for(lambda: get_job(base, h, jid)["progress"]["step"] >= 30, 60, what="step 30")
+    w1.stop(timeout=60)
+    j = wait_status(base, h, jid, "queued", 10)
+    assert j["progress"]["stage"] == "interrupted", j
+    stored = json.loads(weed.read(f"{PREFIX}/jobs/{jid}/run/checkpoints/latest.json"))["step"]
+    assert stored >= 30
+    assert not (w1.data / "work" / jid).exists()          # the scratch copy went with the worker
+    worker("term2")
+    final = wait_status(base, h, jid, ("succeeded", "failed"), 120)
+    assert final["status"] == "succeeded", final
+    log = final["delivery"]["attempt_log"]
+    assert log[0].get("interrupted") == "worker shutdown" and log[1]["first_step"] == stored + 1, log
+    recs = httpx.get(f"{base}/jobs/{jid}/metrics", headers=h).json()["records"]
+    assert [r["step"] for r in recs if "kind" not in r] == list(range(1, 151))
+
 def test_downloads_authorisation_and_tickets_across_two_api_processes(stack, worker):
     """A second API process (other data dir, same NEPF_SECRET_KEY, presigned downloads) accepts the
     first one's SSE ticket; streamed downloads answer Range and If-None-Match; checkpoints are
