@@ -7,7 +7,9 @@
   and ``metrics.jsonl``: a consistent set) and uploaded by a background thread in the order
   metrics, ``latest.pt``, ``latest.json``; ``latest.json`` is the commit mark another worker
   resumes from. Training never waits for the store: a newer snapshot replaces one not yet sent.
-* The same thread re-uploads ``run/metrics.jsonl`` when it grew, every ``NEPF_STORAGE_SYNC_S``.
+* The same thread re-uploads the files the viewer reads while a job trains (:data:`LIVE_FILES`:
+  ``metrics.jsonl``, the held-out picture ``holdout/latest.png``) when they changed, every
+  ``NEPF_STORAGE_SYNC_S``.
 * :meth:`publish` uploads the results once training ends (``manifest.json`` last, so the API
   never lists an artifact that is not there yet).
 
@@ -34,6 +36,9 @@ from .bucket import Bucket
 
 log = logging.getLogger("nepf.storage")
 CHECKPOINT_FILES = ("latest.pt", "latest.json")
+#: run files the viewer shows while the job trains: uploaded whenever they change (both are
+#: written by replacing the file, or appended by whole lines)
+LIVE_FILES = {"metrics.jsonl": "application/x-ndjson", "holdout/latest.png": "image/png"}
 
 
 def _safe_rel(rel: str) -> bool:
@@ -60,7 +65,7 @@ class RemoteWorkspace(Workspace):
         self._busy = False
         self._closed = False
         self._seq = 0
-        self._metrics_sig: Optional[tuple] = None
+        self._live_sig: dict[str, Optional[tuple]] = {}
         self._thread: Optional[threading.Thread] = None
 
     # ------------------------------------------------------------------ start
@@ -108,7 +113,7 @@ class RemoteWorkspace(Workspace):
         with ThreadPoolExecutor(8) as pool:
             for f in [pool.submit(self.bucket.download, self.prefix + rel, dest) for rel, dest in wanted]:
                 f.result()
-        self._metrics_sig = self._sig(self.run_dir / "metrics.jsonl")
+        self._live_sig = {rel: self._sig(self.run_dir / rel) for rel in LIVE_FILES}   # stored already
 
     # ------------------------------------------------------------------ during the run
     def on_checkpoint(self, step: int, path: str) -> None:
@@ -146,17 +151,19 @@ class RemoteWorkspace(Workspace):
                           ("latest.json", "run/checkpoints/latest.json")):
             if (snap / name).exists() and self.may_write():
                 self.bucket.put_file(self.prefix + rel, snap / name)
-        self._metrics_sig = None   # the snapshot's metrics are older than the live file: send it again
+        self._live_sig.pop("metrics.jsonl", None)   # the snapshot's is older than the live file: send it again
 
-    def _sync_metrics(self) -> None:
-        path = self.run_dir / "metrics.jsonl"
-        sig = self._sig(path)
-        if sig is None or sig == self._metrics_sig or not self.may_write():
-            return
-        data = path.read_bytes()
-        self.bucket.put_bytes(self.prefix + "run/metrics.jsonl", data[:data.rfind(b"\n") + 1],
-                              "application/x-ndjson")
-        self._metrics_sig = sig
+    def _sync_live(self) -> None:
+        for rel, ctype in LIVE_FILES.items():
+            path = self.run_dir / rel
+            sig = self._sig(path)
+            if sig is None or sig == self._live_sig.get(rel) or not self.may_write():
+                continue
+            data = path.read_bytes()
+            if rel.endswith(".jsonl"):
+                data = data[:data.rfind(b"\n") + 1]     # complete records only
+            self.bucket.put_bytes(self.prefix + "run/" + rel, data, ctype)
+            self._live_sig[rel] = sig
 
     def _loop(self) -> None:
         backoff = 1.0
@@ -173,7 +180,7 @@ class RemoteWorkspace(Workspace):
                     self._upload_snapshot(snap)
                     shutil.rmtree(snap, ignore_errors=True)
                     snap = None
-                self._sync_metrics()
+                self._sync_live()
                 self.last_error, backoff = None, 1.0
             except StorageUnavailable as exc:
                 if self.last_error is None:
