@@ -1,5 +1,6 @@
-"""What the artifact routes serve from a job's run folder: which file a requested path names
-(:func:`safe_artifact_path`) and with which content type (:func:`content_type_for`)."""
+"""The content type an artifact is served with (:func:`content_type_for`). Which file or object a
+requested path names, and that it stays inside the run folder, is the storage layer's business
+(:func:`jobstore.storage.artifact_rel`, :func:`jobstore.storage.local.safe_artifact_path`)."""
 
 from __future__ import annotations
 
@@ -22,7 +23,3 @@ def content_type_for(path: str) -> str:
     ext = os.path.splitext(path)[1].lower()
     return CONTENT_TYPES.get(ext) or mimetypes.guess_type(path)[0] or "application/octet-stream"
 
-
-# moved to the storage layer (the local backend checks paths with it); kept importable from here
-from jobstore.storage import PRIVATE_DIRS  # noqa: E402,F401
-from jobstore.storage.local import safe_artifact_path  # noqa: E402,F401

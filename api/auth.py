@@ -1,4 +1,4 @@
-"""Bearer tokens (stored as SHA-256 hashes) and short-lived signed SSE tickets.
+"""Bearer tokens (stored as SHA-256 hashes) and short-lived signed SSE tickets (itsdangerous).
 
 Tokens are 256-bit random strings, so a fast unsalted hash is enough: there is nothing to
 brute-force, and the DB never holds a usable token. A verified token is cached in the API
@@ -9,10 +9,7 @@ the token is still live: a revoked token's tickets stop working at once.
 
 from __future__ import annotations
 
-import base64
 import hashlib
-import hmac
-import json
 import os
 import secrets
 import threading
@@ -20,6 +17,8 @@ import time
 from pathlib import Path
 from typing import Optional
 
+from cachetools import TTLCache
+from itsdangerous import BadData, URLSafeTimedSerializer
 from sqlalchemy import select
 from sqlalchemy.orm import sessionmaker
 
@@ -42,41 +41,49 @@ def create_token(Session: sessionmaker, owner: str, name: Optional[str] = None) 
 
 
 class TokenVerifier:
-    """Token -> owner, with a small TTL cache (the hot path of 200 pollers)."""
+    """Token -> owner, with TTL caches (the hot path of 200 pollers): a live token's owner for
+    ``ttl_s`` (so a revocation takes effect after at most that long), an unknown token for 1 s.
+    Both are bounded LRU-with-expiry caches (cachetools), guarded by one lock."""
+
+    MAX_ENTRIES = 10_000
+    MISS_TTL_S = 1.0
 
     def __init__(self, Session: sessionmaker, ttl_s: float) -> None:
         self.Session = Session
         self.ttl_s = ttl_s
-        self._cache: dict[str, tuple[float, Optional[str]]] = {}
+        self._owners: TTLCache = TTLCache(self.MAX_ENTRIES, ttl=ttl_s, timer=time.monotonic)
+        self._misses: TTLCache = TTLCache(self.MAX_ENTRIES, ttl=self.MISS_TTL_S, timer=time.monotonic)
         self._lock = threading.Lock()
+
+    def _lookup(self, h: str) -> tuple[bool, Optional[str]]:
+        with self._lock:
+            owner = self._owners.get(h)
+            if owner is not None:
+                return True, owner
+            return h in self._misses, None
 
     def cached(self, token: str) -> tuple[bool, Optional[str]]:
         """``(hit, owner)`` from the cache only (no I/O)."""
         if not token or len(token) > 512:
             return True, None
-        hit = self._cache.get(hash_token(token))
-        if hit is not None and hit[0] > time.monotonic():
-            return True, hit[1]
-        return False, None
+        return self._lookup(hash_token(token))
 
     def owner_of(self, token: str) -> Optional[str]:
         if not token or len(token) > 512:
             return None
         h = hash_token(token)
-        now = time.monotonic()
-        with self._lock:
-            hit = self._cache.get(h)
-            if hit is not None and hit[0] > now:
-                return hit[1]
+        hit, owner = self._lookup(h)
+        if hit:
+            return owner
         with self.Session() as s:
             row = s.execute(select(Token.owner).where(Token.token_hash == h, Token.revoked.is_(False))).first()
         owner = row[0] if row else None
         with self._lock:
-            if len(self._cache) > 10000:
-                self._cache.clear()
-            self._cache[h] = (now + (self.ttl_s if owner else 1.0), owner)
+            if owner is not None:
+                self._owners[h] = owner
+            else:
+                self._misses[h] = True
         return owner
-
 
     def token_id(self, token: str) -> Optional[int]:
         """The row id of a live token (what a ticket names), or None. Uncached: minting a ticket
@@ -120,38 +127,31 @@ def load_secret(data_dir: Path, configured: Optional[str]) -> bytes:
     return path.read_bytes()
 
 
-def _b64(b: bytes) -> str:
-    return base64.urlsafe_b64encode(b).rstrip(b"=").decode("ascii")
+TICKET_SALT = "nepf.sse-ticket"
 
 
-def _unb64(s: str) -> bytes:
-    return base64.urlsafe_b64decode(s + "=" * (-len(s) % 4))
+def _ticket_serializer(secret: bytes) -> URLSafeTimedSerializer:
+    return URLSafeTimedSerializer(secret, salt=TICKET_SALT, signer_kwargs={"digest_method": hashlib.sha256})
 
 
-def make_ticket(secret: bytes, owner: str, job_id: str, ttl_s: int, token_id: int) -> str:
-    """A signed ``{owner, job, exp, token}``: good for one job's event stream, for ``ttl_s``
-    seconds, and only while the bearer token it was minted with (row ``token_id``) is not revoked."""
-    body = _b64(json.dumps({"o": owner, "j": job_id, "e": int(time.time()) + int(ttl_s), "k": int(token_id)},
-                           separators=(",", ":")).encode())
-    sig = _b64(hmac.new(secret, body.encode(), hashlib.sha256).digest())
-    return f"{body}.{sig}"
+def make_ticket(secret: bytes, owner: str, job_id: str, token_id: int) -> str:
+    """A signed, timestamped ``{owner, job, token}`` (itsdangerous): good for one job's event
+    stream, for ``NEPF_TICKET_TTL_S`` from now (checked when it is used), and only while the
+    bearer token it was minted with (row ``token_id``) is not revoked."""
+    return _ticket_serializer(secret).dumps({"o": owner, "j": job_id, "k": int(token_id)})
 
 
-def check_ticket(secret: bytes, ticket: str, job_id: str) -> Optional[tuple[str, int]]:
-    """``(owner, token_id)`` of a valid, unexpired ticket for ``job_id``; otherwise None. Whether
-    the token is still live is the caller's check (:meth:`TokenVerifier.token_is_live`): it needs
-    the DB. A ticket without a token id (minted before tickets carried one) is invalid."""
+def check_ticket(secret: bytes, ticket: str, job_id: str, max_age_s: float) -> Optional[tuple[str, int]]:
+    """``(owner, token_id)`` of a ticket for ``job_id`` signed with ``secret`` at most
+    ``max_age_s`` ago; otherwise None. Whether the token is still live is the caller's check
+    (:meth:`TokenVerifier.token_is_live`): it needs the DB."""
     try:
-        body, sig = ticket.split(".", 1)
-        want = _b64(hmac.new(secret, body.encode(), hashlib.sha256).digest())
-        if not hmac.compare_digest(want, sig):
-            return None
-        data = json.loads(_unb64(body))
-        if data.get("j") != job_id or int(data.get("e", 0)) < time.time():
-            return None
-        owner, token_id = data.get("o"), data.get("k")
-        if not isinstance(owner, str) or not isinstance(token_id, int) or isinstance(token_id, bool):
-            return None
-        return owner, token_id
-    except Exception:  # noqa: BLE001 - any malformed ticket is just invalid
+        data = _ticket_serializer(secret).loads(ticket, max_age=max_age_s)
+    except BadData:   # bad signature, expired, malformed
         return None
+    if not isinstance(data, dict) or data.get("j") != job_id:
+        return None
+    owner, token_id = data.get("o"), data.get("k")
+    if not isinstance(owner, str) or not isinstance(token_id, int) or isinstance(token_id, bool):
+        return None
+    return owner, token_id

@@ -21,7 +21,7 @@ from starlette.responses import JSONResponse
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from .errors import ApiError
-from .settings import Settings
+from jobstore.settings import Settings
 from .uploads import MAX_CONFIG_BYTES
 from .zip_safety import MB
 

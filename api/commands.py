@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 from typing import Optional
 
-from .settings import get_settings, reset_settings_cache
+from jobstore.settings import get_settings, reset_settings_cache
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 LOCAL_OWNER = "local"

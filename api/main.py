@@ -21,10 +21,10 @@ from jobstore.storage import StorageUnavailable
 from .body_limit import BodyLimit, upload_body_cap, upload_too_large
 from .header_limit import HeaderLimit
 from .errors import ApiError, api_error_handler, http_error_handler, internal_error_handler, storage_error_handler
-from .routes import artifacts, jobs
+from .routes import artifacts, events, jobs
 from .schemas import Health
 from .service import Service
-from .settings import Settings, get_settings
+from jobstore.settings import Settings, get_settings
 
 log = logging.getLogger("nepf.api")
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -68,8 +68,8 @@ def create_app(settings: Optional[Settings] = None, *, reconciler: Optional[bool
                            expose_headers=["Content-Disposition", "ETag", "Last-Modified", "Content-Range"])
     # outermost: a head over the cap is refused before CORS, the body cap or any route sees it
     app.add_middleware(HeaderLimit, limit=settings.max_header_bytes)
-    app.include_router(jobs.router)
-    app.include_router(artifacts.router)
+    for routes in (jobs, events, artifacts):
+        app.include_router(routes.router)
 
     @app.get("/healthz", response_model=Health, tags=["health"], summary="The process is up")
     def healthz():

@@ -7,32 +7,9 @@ from typing import Any, Literal, Optional
 
 from pydantic import BaseModel, Field
 
+from .job_config import JobConfig  # the one model of a job's options (validation, docs, the form)
+
 Status = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-
-
-class JobConfig(BaseModel):
-    preset: Literal["fast", "paper", "tiny"] = "fast"
-    iters: Optional[int] = Field(None, ge=1, le=10_000_000)
-    time_budget_s: Optional[float] = Field(None, gt=0, le=30 * 24 * 3600)
-    name: Optional[str] = Field(None, max_length=200)
-    max_image_side: Optional[int] = Field(
-        None, ge=8, description="Working resolution: longer image sides are area-resampled down to it at load "
-                                "(at most NEPF_MAX_IMAGE_SIDE; None: that ceiling).")
-    holdout_every: Optional[int] = Field(
-        None, ge=0, description="Views 0, N, 2N, ... are held out of training and evaluated on a wall-clock "
-                                "schedule (the error-against-time chart). 0: train on all views; otherwise "
-                                "2..n_views/2 (at least two held out, at least every other view training). "
-                                "Default: 8 for 16 or more views, else 0; the job shows the value used.")
-    texture_size: Optional[Literal[256, 512, 1024, 2048]] = Field(
-        None, description="Baked texture size of the export (None: NEPF_EXPORT_TEXTURE_SIZE, else the preset's).")
-    max_faces: Optional[int] = Field(
-        None, ge=1_000, le=2_000_000, description="Face budget of the exported mesh (None: NEPF_EXPORT_MAX_FACES, "
-                                                  "else the preset's).")
-    up_axis: Optional[Literal["+x", "-x", "+y", "-y", "+z", "-z"]] = Field(
-        None, description="The input world's up axis, which the export turns into glTF's +Y (the GLB, lights.json "
-                          "and light_field.json; the manifest's frame records it). The request may say \"auto\" "
-                          "(or nothing): the mean of the cameras' up vectors, snapped to the nearest axis; the job "
-                          "then shows None.")
 
 
 class Progress(BaseModel):

@@ -7,6 +7,7 @@ import time
 from dataclasses import dataclass
 from typing import Optional
 
+from cachetools import TTLCache
 from celery import Celery
 from fastapi import Request
 from sqlalchemy.orm import sessionmaker
@@ -16,32 +17,31 @@ from jobstore.queue import make_celery
 from jobstore.storage import Storage, open_storage
 
 from .auth import TokenVerifier, load_secret
-from .settings import Settings
+from jobstore.settings import Settings
 
 
 class JobCache:
     """Micro-cache of rendered ``GET /jobs/{id}`` bodies: many pollers of one job cost one DB read
-    per ``NEPF_POLL_CACHE_S`` (the worker writes progress about once a second anyway)."""
+    per ``NEPF_POLL_CACHE_S`` (the worker writes progress about once a second anyway). A bounded
+    TTL cache (cachetools; the least recently used entry goes first when full), one lock."""
+
+    MAX_ENTRIES = 5000
 
     def __init__(self, ttl_s: float) -> None:
         self.ttl_s = ttl_s
-        self._d: dict[str, tuple[float, str, bytes]] = {}
+        self._d: TTLCache = TTLCache(self.MAX_ENTRIES, ttl=max(ttl_s, 0.0), timer=time.monotonic)
         self._lock = threading.Lock()
 
     def get(self, job_id: str, owner: str) -> Optional[bytes]:
-        hit = self._d.get(job_id)
-        if hit is None or hit[0] < time.monotonic() or hit[1] != owner:
-            return None
-        return hit[2]
+        with self._lock:
+            hit = self._d.get(job_id)
+        return hit[1] if hit is not None and hit[0] == owner else None
 
     def put(self, job_id: str, owner: str, body: bytes) -> None:
         if self.ttl_s <= 0:
             return
         with self._lock:
-            if len(self._d) > 5000:
-                now = time.monotonic()
-                self._d = {k: v for k, v in self._d.items() if v[0] >= now}
-            self._d[job_id] = (time.monotonic() + self.ttl_s, owner, body)
+            self._d[job_id] = (owner, body)
 
     def drop(self, job_id: str) -> None:
         with self._lock:
@@ -68,8 +68,7 @@ class Service:
         storage = open_storage(settings)
         check_secret(settings, storage)
         settings.data_path.mkdir(parents=True, exist_ok=True)
-        if not storage.remote:
-            settings.jobs_path.mkdir(parents=True, exist_ok=True)
+        storage.setup()
         settings.uploads_path.mkdir(parents=True, exist_ok=True)
         Session = session_factory(settings.db_url)
         return cls(settings=settings, Session=Session,
@@ -83,9 +82,10 @@ class StartupError(RuntimeError):
 
 
 def check_secret(settings: Settings, storage: Storage) -> None:
-    """With the object store, API processes run on several machines: a per-machine
-    ``secret.key`` would make each refuse the others' SSE tickets, so the key must be given."""
-    if storage.remote and not settings.secret_key:
+    """When the job files are reachable from several machines, API processes may run on several:
+    a per-machine ``secret.key`` would make each refuse the others' SSE tickets, so the key must be
+    given (``NEPF_SECRET_KEY``)."""
+    if storage.multi_machine and not settings.secret_key:
         raise StartupError("NEPF_STORAGE_URL is set but NEPF_SECRET_KEY is not: every API process must sign "
                            "SSE tickets with the same key (e.g. NEPF_SECRET_KEY=$(python -c 'import secrets; "
                            "print(secrets.token_urlsafe(32))'))")

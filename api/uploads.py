@@ -23,7 +23,7 @@ from PIL import Image, UnidentifiedImageError
 from python_multipart.multipart import MultipartParser, parse_options_header
 
 from .errors import ApiError
-from .settings import Settings
+from jobstore.settings import Settings
 from .zip_safety import MB
 
 log = logging.getLogger("nepf.api")
@@ -47,6 +47,79 @@ class ReceivedUpload:
 
 
 # --------------------------------------------------------------------------- multipart
+class _PartWriter:
+    """python-multipart callbacks: the ``dataset`` part streams to ``staging/upload.zip`` (hashed,
+    capped at ``max_bytes``), the ``config`` part is kept in memory (capped at 64 KiB). A
+    problem is kept in ``error`` and raised by the reader between chunks."""
+
+    def __init__(self, out: ReceivedUpload, staging: Path, max_bytes: int) -> None:
+        self.out, self.staging, self.max_bytes = out, staging, max_bytes
+        self.sha = hashlib.sha256()
+        self.headers: dict = {}
+        self.hfield, self.hvalue = b"", b""
+        self.name: Optional[str] = None
+        self.sink = None
+        self.cfg = bytearray()
+        self.error: Optional[ApiError] = None
+
+    def callbacks(self) -> dict:
+        return {"on_part_begin": self.on_part_begin, "on_part_data": self.on_part_data,
+                "on_part_end": self.on_part_end, "on_header_field": self.on_header_field,
+                "on_header_value": self.on_header_value, "on_header_end": self.on_header_end,
+                "on_headers_finished": self.on_headers_finished}
+
+    def on_part_begin(self):
+        self.headers, self.name, self.sink = {}, None, None
+
+    def on_header_field(self, data, start, end):
+        self.hfield += data[start:end]
+
+    def on_header_value(self, data, start, end):
+        self.hvalue += data[start:end]
+
+    def on_header_end(self):
+        self.headers[self.hfield.lower()] = self.hvalue
+        self.hfield, self.hvalue = b"", b""
+
+    def on_headers_finished(self):
+        _, p = parse_options_header(self.headers.get(b"content-disposition", b""))
+        self.name = p.get(b"name", b"").decode("utf-8", "replace")
+        self.out.fields.append(self.name)
+        if self.name == "dataset":
+            if self.out.zip_path is not None:
+                self.error = ApiError(422, "duplicate_field", "the 'dataset' part appears twice")
+                return
+            self.out.zip_path = self.staging / "upload.zip"
+            self.sink = open(self.out.zip_path, "wb")
+
+    def on_part_data(self, data, start, end):
+        if self.error is not None:
+            return
+        chunk = data[start:end]
+        if self.name == "dataset":
+            self.out.zip_bytes += len(chunk)
+            if self.out.zip_bytes > self.max_bytes:
+                self.error = ApiError(413, "upload_too_large",
+                                      f"upload exceeds the {self.max_bytes / MB:g} MB cap (NEPF_MAX_UPLOAD_MB)")
+                return
+            self.sha.update(chunk)
+            self.sink.write(chunk)
+        elif self.name == "config":
+            self.cfg += chunk
+            if len(self.cfg) > MAX_CONFIG_BYTES:
+                self.error = ApiError(413, "config_too_large", "the 'config' part exceeds 64 KiB")
+
+    def on_part_end(self):
+        self.close()
+        if self.name == "config":
+            self.out.config_raw = bytes(self.cfg)
+
+    def close(self):
+        if self.sink is not None:
+            self.sink.close()
+            self.sink = None
+
+
 async def receive_multipart(stream: AsyncIterator[bytes], content_type: str, staging: Path,
                             max_bytes: int) -> ReceivedUpload:
     """Parse ``multipart/form-data`` from ``stream``; write the ``dataset`` part to
@@ -55,90 +128,27 @@ async def receive_multipart(stream: AsyncIterator[bytes], content_type: str, sta
     if ctype != b"multipart/form-data" or b"boundary" not in params:
         raise ApiError(415, "unsupported_media_type",
                        "POST /jobs takes multipart/form-data with a 'dataset' .zip file part")
-    boundary = params[b"boundary"]
     out = ReceivedUpload()
-    h = hashlib.sha256()
-    state: dict = {"headers": {}, "hfield": b"", "hvalue": b"", "name": None, "is_file": False,
-                   "sink": None, "cfg": bytearray(), "error": None}
-
-    def on_part_begin():
-        state["headers"] = {}
-        state["name"] = None
-        state["sink"] = None
-
-    def on_header_field(data, start, end):
-        state["hfield"] += data[start:end]
-
-    def on_header_value(data, start, end):
-        state["hvalue"] += data[start:end]
-
-    def on_header_end():
-        state["headers"][state["hfield"].lower()] = state["hvalue"]
-        state["hfield"] = b""
-        state["hvalue"] = b""
-
-    def on_headers_finished():
-        disp = state["headers"].get(b"content-disposition", b"")
-        _, p = parse_options_header(disp)
-        name = p.get(b"name", b"").decode("utf-8", "replace")
-        state["name"] = name
-        state["is_file"] = b"filename" in p
-        out.fields.append(name)
-        if name == "dataset":
-            if out.zip_path is not None:
-                state["error"] = ApiError(422, "duplicate_field", "the 'dataset' part appears twice")
-                return
-            out.zip_path = staging / "upload.zip"
-            state["sink"] = open(out.zip_path, "wb")
-
-    def on_part_data(data, start, end):
-        if state["error"] is not None:
-            return
-        chunk = data[start:end]
-        if state["name"] == "dataset":
-            out.zip_bytes += len(chunk)
-            if out.zip_bytes > max_bytes:
-                state["error"] = ApiError(
-                    413, "upload_too_large",
-                    f"upload exceeds the {max_bytes / MB:g} MB cap (NEPF_MAX_UPLOAD_MB)")
-                return
-            h.update(chunk)
-            state["sink"].write(chunk)
-        elif state["name"] == "config":
-            state["cfg"] += chunk
-            if len(state["cfg"]) > MAX_CONFIG_BYTES:
-                state["error"] = ApiError(413, "config_too_large", "the 'config' part exceeds 64 KiB")
-
-    def on_part_end():
-        if state["sink"] is not None:
-            state["sink"].close()
-            state["sink"] = None
-        if state["name"] == "config":
-            out.config_raw = bytes(state["cfg"])
-
-    parser = MultipartParser(boundary, callbacks={
-        "on_part_begin": on_part_begin, "on_part_data": on_part_data, "on_part_end": on_part_end,
-        "on_header_field": on_header_field, "on_header_value": on_header_value,
-        "on_header_end": on_header_end, "on_headers_finished": on_headers_finished})
+    parts = _PartWriter(out, staging, max_bytes)
+    parser = MultipartParser(params[b"boundary"], callbacks=parts.callbacks())
     try:
         async for chunk in stream:
             if not chunk:
                 continue
             parser.write(chunk)
-            if state["error"] is not None:
-                raise state["error"]
+            if parts.error is not None:
+                raise parts.error
         parser.finalize()
     except ApiError:
         raise
     except Exception as exc:  # noqa: BLE001 - malformed multipart framing
         raise ApiError(400, "bad_multipart", f"malformed multipart body: {exc}") from None
     finally:
-        if state["sink"] is not None:
-            state["sink"].close()
+        parts.close()
     if out.zip_path is None:
         raise ApiError(422, "missing_dataset", "the multipart body has no 'dataset' file part")
-    h.update(b"\0config\0" + (out.config_raw or b""))
-    out.sha256 = h.hexdigest()
+    parts.sha.update(b"\0config\0" + (out.config_raw or b""))
+    out.sha256 = parts.sha.hexdigest()
     return out
 
 

@@ -31,7 +31,7 @@ from pathlib import Path, PurePosixPath
 from typing import BinaryIO, Optional
 
 from .errors import ApiError
-from .settings import Settings
+from jobstore.settings import Settings
 
 MB = 1024 * 1024
 #: one folder or file name: NAME_MAX of Linux, macOS and NTFS

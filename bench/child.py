@@ -84,13 +84,13 @@ def fit_real(spec: dict, run: Path, overrides: dict, callbacks=None) -> dict:
 
 
 class _EvalClock:
-    """Training wall time at the start of every held-out evaluation.
+    """How long each held-out evaluation took (``eval_s``: rendering + Chamfer mesh, wall time of
+    this process) and the training time at its start.
 
-    ``fit()`` stamps a test record's ``wall_s`` *before* it subtracts that evaluation's own
-    duration, so the logged value also counts the evaluation in progress (rendering + Chamfer
-    mesh). ``emit_progress("evaluating")`` at the start of the evaluation carries the exact
-    training time; we pair it with the next test record by step. When fit() is fixed both
-    agree and nothing changes.
+    ``emit_progress("evaluating")`` at the start of an evaluation carries the training time
+    (``train_wall_s``); it is paired with the next test record by step. ``fit()`` stamps the test
+    record's ``wall_s`` with the same training time (its clock is paused during evaluations), so
+    ``logged_wall_s == train_wall_s``, a check that evaluations are not counted as training.
     """
 
     def __init__(self) -> None:

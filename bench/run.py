@@ -45,8 +45,9 @@ VARIANTS = {
     # importance samples, no occupancy grid, no empty rays left out), heads evaluated everywhere,
     # nothing adaptive. The brief measured 0.56 s/step and 21-24 dB held-out radiance PSNR at 300 s
     "naive": {"train.adaptive": False, "model.occupancy_resolution": 0,
-              "model.sdf_grid": {"n_levels": 1, "base_resolution": 96, "max_resolution": 96,
-                                 "features_per_level": 4, "start_levels": 1},
+              "model.sdf_grid.n_levels": 1, "model.sdf_grid.base_resolution": 96,
+              "model.sdf_grid.max_resolution": 96, "model.sdf_grid.features_per_level": 4,
+              "model.sdf_grid.start_levels": 1,
               "render.n_samples": 48, "render.n_importance": 0, "render.up_sample_steps": 0,
               "render.alpha_mode": "midpoint", "render.normals": "fd", "render.head_weight_threshold": 0.0,
               "render.surface_refine": False, "train.batch_rays": 1024},
@@ -241,7 +242,8 @@ def plan_runs(args) -> list[dict]:
 
 
 def _metrics_summary(run_dir: Path, evals: list[dict] | None = None) -> dict:
-    """Curves and counters from ``RUN/metrics.jsonl``; test ``wall_s`` corrected by the eval clock."""
+    """Curves and counters from ``RUN/metrics.jsonl``; each test record gets its evaluation's
+    duration ``eval_s`` from the eval clock (:class:`bench.child._EvalClock`)."""
     from nepf_core.plots import read_metrics
     path = run_dir / "metrics.jsonl"
     recs = read_metrics(path) if path.exists() else []
@@ -251,8 +253,6 @@ def _metrics_summary(run_dir: Path, evals: list[dict] | None = None) -> dict:
     for t in tests:
         e = clock.get(t.get("step"))
         if e is not None:
-            t["wall_s_logged"] = t.get("wall_s")
-            t["wall_s"] = e["train_wall_s"]
             t["eval_s"] = e.get("eval_s")
     train = [r for r in recs if r.get("kind", "train") == "train"]
     out = {"test_curve": tests, "n_train_records": len(train)}

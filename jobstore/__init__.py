@@ -1,9 +1,10 @@
 """The NePF job store: the tables (``models``), engines and sessions (``engine``), schema
-migrations (``migrate``, Alembic scripts in ``migrations/``), the Celery wiring both sides share
-(``queue``) and the reconciler (``reconcile``).
+migrations (``migrate``, Alembic scripts in ``migrations/``), the service settings (``settings``),
+every job state change (``state``), the Celery wiring both sides share (``queue``) and the
+reconciler (``reconcile``).
 
-Both the API and the worker import it; it never imports torch, ``nepf_core``, FastAPI, ``api``
-or ``worker`` (settings objects are passed in).
+Both the API and the worker import it; it never imports torch, FastAPI, ``api`` or ``worker``,
+nor ``nepf_core`` beyond its stdlib-only constants ``nepf_core.limits`` (the settings' defaults).
 """
 
 import logging

@@ -13,15 +13,12 @@ crashed worker had taken are not redelivered by this transport; the reconciler
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from celery import Celery
 from kombu import Queue
 from kombu.transport import TRANSPORT_ALIASES
 from kombu.transport import sqlalchemy as _kombu_sqla
 
-if TYPE_CHECKING:   # the settings object is passed in; the store never imports the API
-    from api.settings import Settings
+from .settings import Settings
 
 TASK_NAME = "nepf.run_job"
 QUEUES = ("default", "gpu")

@@ -52,9 +52,9 @@ def cmd_mesh(a) -> int:
 def _encode_channel(name: str, arr):
     import numpy as np
 
-    from nepf_core.evaluate import srgb_np
+    from nepf_core.color import linear_to_srgb
     if name in ("pbr", "radiance", "albedo"):
-        img = srgb_np(arr)
+        img = linear_to_srgb(arr)
     elif name in ("normal", "light_dir"):
         img = (arr + 1.0) * 0.5
     elif name == "light_intensity":
@@ -123,7 +123,8 @@ def cmd_eval(a) -> int:
     import numpy as np
 
     from nepf_core.data.detect import load_scene
-    from nepf_core.evaluate import psnr, srgb_np, ssim
+    from nepf_core.color import linear_to_srgb
+    from nepf_core.evaluate import psnr, ssim
     from nepf_core.train import load_model
     from nepf_core.model import ModelFieldQuery
     out_dir = Path(a.out) if a.out else Path(a.run) / "eval"
@@ -132,8 +133,8 @@ def cmd_eval(a) -> int:
     scene = info["scene"]
     print(f"eval: {scene.n_views} views at {scene.width}x{scene.height} px ({_side_rule(a.max_side)})", file=sys.stderr)
     arr = np.load(out_dir / "renders" / "arrays.npz")
-    pred, gt = srgb_np(arr["pbr"]), srgb_np(scene.images)
-    rad = srgb_np(arr["radiance"])   # the radiance network's colour: what a plain NeuS reports
+    pred, gt = linear_to_srgb(arr["pbr"]), linear_to_srgb(scene.images)
+    rad = linear_to_srgb(arr["radiance"])   # the radiance network's colour: what a plain NeuS reports
     res = {"views": scene.n_views, "working_size": [scene.width, scene.height], "psnr_full": psnr(pred, gt),
            "ssim_full": float(np.mean([ssim(pred[i], gt[i]) for i in range(len(gt))])),
            "radiance_psnr_full": psnr(rad, gt)}

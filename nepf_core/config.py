@@ -12,6 +12,7 @@ from nepf_core.fields.sdf_mlp import MLPSDFConfig
 from nepf_core.losses import LossConfig
 from nepf_core.model import ModelConfig
 from nepf_core.render.renderer import RenderConfig
+from nepf_core.train.rules.config import RuleConfig
 
 
 @dataclass
@@ -48,6 +49,10 @@ class TrainConfig:
     """Wall-clock period of held-out evaluation (0: only at the end, when a test set is given)."""
     eval_stride: int = 1
     """Render held-out views every N-th pixel (speed)."""
+    unlit_rel_threshold: float = 0.01
+    """A target pixel is unlit when ``max_c L_gt < unlit_rel_threshold * q99(foreground)``
+    (:func:`nepf_core.rays.unlit_threshold`): such pixels do not train the albedo
+    (``render.unlit_albedo_stopgrad``) and are left out of the lit-pixel metrics."""
     max_nonfinite_steps: int = 50
     """Fail the run after this many skipped (non-finite) steps."""
     grad_clip: float = 0.0
@@ -67,17 +72,12 @@ class TrainConfig:
     """Let fit() leave out what the scene does not need (:mod:`nepf_core.train.rules`: drop the
     GGX lobe, switch the Hessian term, stop at a plateau, leave empty rays out; every decision in
     report.json). Off in ``paper`` (the paper trains every term for its whole schedule)."""
-    plateau_patience: int = 3
-    """Early stop after this many held-out evaluations without 0.1 dB gain (only when the
-    iteration count was not fixed by the user)..."""
-    plateau_window: int = 3
-    """The plateau rule compares the mean of the last this-many evaluations (1: single ones)."""
-    plateau_min_frac: float = 0.5
-    """...and only when those evaluations also span this share of the training time so far
-    (``t - t_best >= plateau_min_frac * t``)."""
-    plateau_cooldown_frac: float = 0.25
-    """After the plateau rule fires, anneal the learning rate to ``lr_alpha`` over this share of
-    the training time so far, then stop (0: stop at once)."""
+
+
+_MOVED = (("unlit_rel_threshold", "render", "train"), ("plateau_patience", "train", "rules"),
+          ("plateau_window", "train", "rules"), ("plateau_min_frac", "train", "rules"),
+          ("plateau_cooldown_frac", "train", "rules"))
+"""``(key, old section, new section)`` of fields that moved (config.json of older runs)."""
 
 
 @dataclass
@@ -89,6 +89,8 @@ class NePFConfig:
     render: RenderConfig = field(default_factory=RenderConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    rules: RuleConfig = field(default_factory=RuleConfig)
+    """The adaptivity rules' constants (used with ``train.adaptive``)."""
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -96,8 +98,23 @@ class NePFConfig:
     def to_json(self) -> str:
         return json.dumps(self.to_dict(), indent=2)
 
+    def check(self) -> None:
+        """ValueError for settings that contradict each other (fit() calls it)."""
+        if (self.loss.w_albedo_smooth > 0 or self.loss.w_brdf_smooth > 0) and self.render.albedo_smooth_sigma <= 0:
+            raise ValueError("loss.w_albedo_smooth / loss.w_brdf_smooth > 0 need render.albedo_smooth_sigma > 0 "
+                             "(the jitter of the smoothness priors); set it, or set the weights to 0")
+
     @staticmethod
     def from_dict(d: dict) -> "NePFConfig":
+        """The config of a ``config.json``. Keys no field has (removed since) are ignored; a key that
+        moved is read from where older runs wrote it (``render.unlit_rel_threshold``,
+        ``train.plateau_*``)."""
+        sections = {k: dict(d.get(k, {})) for k in ("render", "train", "rules")}
+        for key, old, new in _MOVED:
+            if key in sections[old] and key not in sections[new]:
+                sections[new][key] = sections[old][key]
+        d = {**d, **sections}
+
         def build(cls, data):
             kwargs = {}
             for f in dataclasses.fields(cls):

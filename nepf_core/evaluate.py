@@ -19,17 +19,12 @@ import numpy as np
 import torch
 
 from nepf_core.bsdf import diffuse_only_material
+from nepf_core.color import linear_to_srgb
 from nepf_core.rays import PixelSampler
 from nepf_core.render.renderer import RenderConfig, Shading, render_rays
 
 CHANNELS = ("pbr", "radiance", "albedo", "roughness", "metallic", "normal", "light_dir",
             "light_intensity", "alpha", "depth")
-
-
-def srgb_np(x: np.ndarray) -> np.ndarray:
-    """sRGB OETF for numpy arrays (clamped to [0, 1])."""
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0031308), 1 / 2.4) - 0.055)
 
 
 def render_view(model, sampler: PixelSampler, k: int, cfg: RenderConfig, *, stride: int = 1,
@@ -57,13 +52,13 @@ def render_view(model, sampler: PixelSampler, k: int, cfg: RenderConfig, *, stri
             pbr = out.rgb_surf * alpha
             if out.background is not None:
                 pbr = pbr + (1 - alpha) * out.background
-            s = out.surf
-            albedo, metal = s["albedo"], s["metallic"]
+            s = out.surface
+            albedo, metal = s.albedo, s.metallic
             if not shading.specular:  # lobe dropped: shaded as a dielectric diffuse (metallic 0)
                 albedo, metal = diffuse_only_material(albedo, metal, shading.diffuse_metal_weight)
-            vals = {"pbr": pbr, "radiance": out.rgb_r, "albedo": albedo, "roughness": s["roughness"][:, None],
-                    "metallic": metal[:, None], "normal": s["normal"], "light_dir": s["light_dir"],
-                    "light_intensity": s["intensity"][:, None], "alpha": alpha, "depth": out.depth[:, None]}
+            vals = {"pbr": pbr, "radiance": out.rgb_r, "albedo": albedo, "roughness": s.roughness[:, None],
+                    "metallic": metal[:, None], "normal": s.normal, "light_dir": s.light_dir,
+                    "light_intensity": s.intensity[:, None], "alpha": alpha, "depth": out.depth[:, None]}
             for c in CHANNELS:
                 acc[c].append(vals[c].detach().float().cpu())
     model.train(was_training)
@@ -114,13 +109,25 @@ def ssim(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> fl
     return float(smap[sel].mean())
 
 
+def channel_scale(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Per-channel least-squares scale ``s_c = argmin_s sum_i (s p_ic - g_ic)^2 = sum_i g_ic p_ic /
+    sum_i p_ic^2`` over ``mask``: ``pred, gt [..., 3]``, ``mask [...]`` bool -> ``[3]`` float64.
+
+    A channel with no signal (``sum p^2 <= 1e-12``) gets 1: any scale fits it equally (``s p = 0``),
+    and 1 leaves the prediction as it is. For relit images, whose highlights saturate the
+    display, :func:`nepf_core.relight.metrics.displayed_range_scale` fits on the displayed range."""
+    p = pred[mask].astype(np.float64)
+    g = gt[mask].astype(np.float64)
+    den = (p * p).sum(0)
+    return np.where(den > 1e-12, (p * g).sum(0) / np.maximum(den, 1e-12), 1.0)
+
+
 def albedo_psnr_aligned(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> tuple[float, np.ndarray]:
-    """Per-channel least-squares scale alignment, then sRGB PSNR on the foreground.
+    """Per-channel least-squares scale alignment (:func:`channel_scale`; albedo and light share a
+    scale), then sRGB PSNR on the foreground.
 
     ``pred, gt [N, H, W, 3]`` linear; ``mask [N, H, W]`` bool. Returns ``(psnr, scale [3])``.
     """
-    p = pred[mask].astype(np.float64)
-    g = gt[mask].astype(np.float64)
-    scale = (p * g).sum(0) / np.maximum((p * p).sum(0), 1e-12)
+    scale = channel_scale(pred, gt, mask)
     aligned = np.clip(pred * scale, 0, 1)
-    return psnr(srgb_np(aligned)[mask], srgb_np(gt)[mask]), scale
+    return psnr(linear_to_srgb(aligned)[mask], linear_to_srgb(gt)[mask]), scale

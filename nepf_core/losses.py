@@ -4,7 +4,6 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
 
     L_r     = mean | srgb(L_r) - srgb(L_gt) |
     L_surf  = lambda1 * mean (1 - w_max) | srgb(L_surf) - srgb(sg(L_r)) |     (paper; sg = stop-grad)
-              (ablation: supervise by L_gt instead of L_r)
     L_vol   = lambda2 * mean | srgb(L_vol) - srgb(L_gt) |
     L_eik   = w_eik * mean_q | |grad f| - 1 |      (q: the sample's ray weight, 1 unless thinned)
     L_hess  = w_hess * mean |H f|_F      (Frobenius norm of the SDF Hessian, fields/gradients.py)
@@ -16,22 +15,30 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_range = w_material_range * mean_surf mean_k relu(|z_k| - z_max)   (z: material logits; off in paper)
     L_unseen = w_metallic_unseen * mean_lit m (1 - s)   (s: the lobe's share of L_surf, stop-grad; off in paper)
     L_bg    = w_r * mean_{mask = 0} | srgb(L_r) - srgb(L_gt) |   (masks and a background model)
+    L_points = w_surface_points * mean_p |f(p)|   (captures without masks, train/surface_points.py)
 
 With masks, colour terms average over foreground rays only (NeuS); with masks and a background
 volume (``background``), ``L_bg`` trains the colour of the rays outside the masks, averaged
 over those rays alone, so that the foreground terms keep their scale; ``L_surf`` and
-``L_light`` always use only rays that hit a surface (mask, or ``sum w > 0.5`` without).
+``L_light`` always use only rays that hit a surface (mask, or :func:`foreground` without).
+
+Each term is a :class:`LossTerm` of :data:`LOSS_TERMS` (name, weight field, function of a
+:class:`LossBatch`); :func:`compute_losses` returns every term by name and
+:func:`total_loss` their weighted sum, ``sum_k w_k L_k`` in the registry's order.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from nepf_core.color import linear_to_srgb
 from nepf_core.rays import RayBatch
+from nepf_core.render.neus import foreground
 
 
 @dataclass
@@ -44,10 +51,6 @@ class LossConfig:
     """Paper lambda1 (L_surf)."""
     lambda2_vol: float = 1e-4
     """Paper lambda2 (L_vol)."""
-    surf_target: str = "radiance"
-    """``radiance`` (paper: L_surf supervised by L_r) or ``gt`` (ablation)."""
-    surf_one_minus_wmax: bool = True
-    """Multiply L_surf by (1 - w_max) (paper's "surface approaching")."""
     w_eikonal: float = 0.1
     """Eikonal weight (NeuS's value; the paper gives none)."""
     w_hessian: float = 5e-4
@@ -66,8 +69,8 @@ class LossConfig:
     lambda5: float = 0.1
     """``|var x - var l|``: the directions spread as much as the points (0 in ``fast``, as ``lambda4``)."""
     w_albedo_smooth: float = 0.0
-    """Albedo smoothness prior at the max-weight points (needs ``RenderConfig.albedo_smooth_sigma
-    > 0``); not in the paper. Unlit regions carry no albedo information, so without a prior
+    """Albedo smoothness prior at the surface points; > 0 needs ``RenderConfig.albedo_smooth_sigma
+    > 0`` (an error otherwise: :meth:`nepf_core.config.NePFConfig.check`); not in the paper. Unlit regions carry no albedo information, so without a prior
     their albedo is whatever the network extrapolates; this lets neighbouring lit albedo fill it."""
     w_albedo_flat: float = 0.0
     """Lobe off only (``compute_losses(..., specular=False)``): lit surface rays pull the
@@ -95,7 +98,7 @@ class LossConfig:
     least 0.045; roughness >= 0.047 still gives a near-mirror glTF lobe (alpha = 3e-3)."""
     w_metallic_unseen: float = 0.0
     """Metallic only where its lobe is seen: ``mean_lit m (1 - s)`` with ``s`` the specular lobe's
-    share of the shaded surface colour (stop-grad, ``surf["lobe_share"]``), over lit surface rays.
+    share of the shaded surface colour (stop-grad, :attr:`RenderOutput.lobe`), over lit surface rays.
     A metal whose lobe the views never see (roughness near 0, so the highlight is a point that no
     pixel catches) only darkens its diffuse by ``(1 - m)``, which the albedo can do as well; the
     images cannot tell the two apart, and without a prior the texture goes into metallic. Where
@@ -106,14 +109,6 @@ class LossConfig:
     paper (its scenes have masks)."""
     w_mask: float = 0.1
     """Mask BCE weight (NeuS's value); only applied when the scene has masks."""
-    color_space: str = "srgb"
-    """``srgb`` (display space) or ``linear``."""
-
-
-def srgb_encode(x: Tensor) -> Tensor:
-    """sRGB OETF on linear values clamped to [0, 1]; bounded slope (12.92) near 0."""
-    x = x.clamp(0.0, 1.0)
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
 
 
 def l1_masked(pred: Tensor, target: Tensor, weight: Tensor | None) -> Tensor:
@@ -161,87 +156,221 @@ def mask_bce(weight_sum: Tensor, mask: Tensor, ray_weight: Tensor | None = None)
     return weighted_mean(bce, ray_weight)
 
 
-def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, specular: bool = True,
-                   background: bool = False,
-                   background_rays: tuple[Tensor, RayBatch] | None = None) -> dict[str, Tensor]:
-    """All enabled loss terms plus their weighted sum under ``"loss"``. ``specular``: whether
-    the render evaluated the GGX lobe (``RenderConfig.specular``); L_flat applies only without it.
-    ``background``: the model has a background volume (L_bg with masks).
 
-    ``background_rays = (C_bg [B, 3], rays [B])``: the misses the empty-ray rule left out of the
-    SDF batch, rendered by the background alone (their ``rgb_r = rgb_vol = C_bg``,
-    :func:`nepf_core.render.renderer.render_background_only`). The colour terms ``L_r``, ``L_vol``
-    and ``L_bg`` are then means over all ``R + B`` rays, each background ray weighing its
-    ``rays.weight`` (the misses it stands for, :mod:`nepf_core.train.rules.empty_rays`), and the
-    kept misses count once in ``L_bg`` (each stands for itself, no longer for ``1 / miss_keep``
-    drawn misses)."""
-    enc = srgb_encode if cfg.color_space == "srgb" else (lambda t: t.clamp(0.0, 1.0))
-    gt = enc(rays.rgb)
+
+@dataclass
+class LossBatch:
+    """What the loss terms read: one step's render, its rays and the values several terms share."""
+
+    out: object
+    """The :class:`~nepf_core.render.renderer.RenderOutput`."""
+    rays: RayBatch
+    cfg: LossConfig
+    use_mask: bool
+    specular: bool
+    """The render evaluated the GGX lobe (L_flat applies only without it)."""
+    background: bool
+    """The model has a background volume (L_bg with masks)."""
+    zero: Tensor
+    gt: Tensor
+    """``[R, 3]`` ``srgb(L_gt)``."""
+    fg: Tensor | None
+    """``[R]`` the mask when the mask loss applies, else None."""
+    r_sdf: Tensor
+    """``[R, 3]`` ``srgb(L_r)`` of the SDF batch."""
+    r_enc: Tensor
+    """``[R (+ B), 3]`` ``srgb(L_r)``, with the background-only rays appended."""
+    vol_enc: Tensor
+    """``[R (+ B), 3]`` ``srgb(L_vol)``, likewise."""
+    gt_all: Tensor
+    colour_w: Tensor | None
+    """``[R (+ B)]`` the per-ray weight of the colour means (mask x importance; None: plain mean)."""
+    fg_all: Tensor | None
+    outside_q: Tensor | None
+    """``[R (+ B)]`` L_bg's per-ray importance (None: 1)."""
+    surf_rays: Tensor
+    """``[R]`` float: the rays that end on a surface (mask, or :func:`foreground`)."""
+    on_surf: Tensor
+    """``[R]`` bool, ``surf_rays > 0.5``."""
+    lit: Tensor
+    """``[R]`` bool: on the surface and the target pixel is lit."""
+    surface_points: Callable[[], Tensor] | None = None
+    """Without masks: ``mean_p |f(p)|`` at the triangulated object points (draws its own points)."""
+
+
+def loss_batch(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, specular: bool = True,
+               background: bool = False, background_rays: tuple[Tensor, RayBatch] | None = None,
+               surface_points: Callable[[], Tensor] | None = None) -> LossBatch:
+    """The shared values of :class:`LossBatch`. ``background_rays = (C_bg [B, 3], rays [B])``: the
+    misses the empty-ray rule left out of the SDF batch, rendered by the background alone (their
+    ``rgb_r = rgb_vol = C_bg``, :func:`nepf_core.render.renderer.render_background_only`). The colour
+    terms ``L_r``, ``L_vol`` and ``L_bg`` are then means over all ``R + B`` rays, each background ray
+    weighing its ``rays.weight`` (the misses it stands for, :mod:`nepf_core.train.rules.empty_rays`),
+    and the kept misses count once in ``L_bg`` (each stands for itself, no longer for
+    ``1 / miss_keep`` drawn misses)."""
+    gt = linear_to_srgb(rays.rgb)
     fg = rays.mask if (use_mask and rays.mask is not None) else None
-    L = {}
     zero = out.rgb_r.new_zeros(())
-    r_sdf = enc(out.rgb_r)
-    r_enc, vol_enc = r_sdf, enc(out.rgb_vol)
+    r_sdf = linear_to_srgb(out.rgb_r)
+    r_enc, vol_enc = r_sdf, linear_to_srgb(out.rgb_vol)
     gt_all, fg_all = gt, fg
     colour_q = None          # per-ray weight in the colour means (None: every ray once)
     outside_q = rays.weight  # L_bg: a thinned batch's kept misses stand for 1 / miss_keep misses
     if background_rays is not None:
         bg_rgb, bg_rays = background_rays
-        bg_enc = enc(bg_rgb)
+        bg_enc = linear_to_srgb(bg_rgb)
         r_enc, vol_enc = torch.cat([r_enc, bg_enc]), torch.cat([vol_enc, bg_enc])
-        gt_all = torch.cat([gt, enc(bg_rays.rgb)])
+        gt_all = torch.cat([gt, linear_to_srgb(bg_rays.rgb)])
         fg_all = None if fg is None else torch.cat([fg, bg_rays.mask])
         bg_q = bg_rays.weight if bg_rays.weight is not None else torch.ones_like(bg_enc[:, 0])
         colour_q = outside_q = torch.cat([torch.ones_like(gt[:, 0]), bg_q])
     colour_w = fg_all if colour_q is None else (colour_q if fg_all is None else fg_all * colour_q)
-    L["loss_r"] = l1_masked(r_enc, gt_all, colour_w) if cfg.w_r > 0 else zero
-    L["loss_bg"] = zero
-    if background and fg_all is not None and cfg.w_r > 0:
-        L["loss_bg"] = l1_masked(r_enc, gt_all, (1.0 - fg_all) * (outside_q if outside_q is not None else 1.0))
-    surf_rays = fg if fg is not None else (out.weight_sum.detach() > 0.5).float()
-    if cfg.lambda1_surf > 0:
-        target = r_sdf.detach() if cfg.surf_target == "radiance" else gt
-        wt = surf_rays * ((1.0 - out.w_max.detach()) if cfg.surf_one_minus_wmax else 1.0)
-        err = (enc(out.rgb_surf) - target).abs().mean(-1)
-        L["loss_surf"] = (err * wt).sum() / surf_rays.sum().clamp_min(1.0)
-    else:
-        L["loss_surf"] = zero
-    L["loss_vol"] = l1_masked(vol_enc, gt_all, colour_w) if cfg.lambda2_vol > 0 else zero
-    L["loss_eik"] = (weighted_mean(out.eikonal, out.eikonal_weight)
-                     if (cfg.w_eikonal > 0 and out.eikonal.numel()) else zero)
-    L["loss_hess"] = out.hessian.mean() if (cfg.w_hessian > 0 and out.hessian.numel()) else zero
-    s = out.surf
+    surf_rays = fg if fg is not None else foreground(out.weight_sum).float()
     on_surf = surf_rays > 0.5
     lit = on_surf & ~rays.unlit if rays.unlit is not None else on_surf
-    if cfg.w_light > 0:
-        L["loss_light"] = light_variance_loss(s["x"][on_surf], s["normal"][on_surf], s["light_dir"][on_surf],
-                                              s["intensity"][on_surf], cfg.lambda3, cfg.lambda4, cfg.lambda5)
-    else:
-        L["loss_light"] = zero
-    L["loss_albedo_smooth"] = zero
-    if cfg.w_albedo_smooth > 0 and "albedo_jitter" in s:
-        L["loss_albedo_smooth"] = mean_where((s["albedo"] - s["albedo_jitter"]).abs().mean(-1), on_surf)
-    L["loss_albedo_flat"] = zero
-    if cfg.w_albedo_flat > 0 and not specular and lit.sum() >= 2:
-        lum = s["albedo"][lit].mean(-1)
-        L["loss_albedo_flat"] = (lum / lum.detach().mean().clamp_min(1e-4) - 1.0).abs().mean()
-    L["loss_brdf_smooth"] = zero
-    if cfg.w_brdf_smooth > 0 and "roughness_jitter" in s:
-        diff = (s["roughness"] - s["roughness_jitter"]).abs() + (s["metallic"] - s["metallic_jitter"]).abs()
-        L["loss_brdf_smooth"] = mean_where(diff, on_surf)
-    L["loss_material_range"] = zero
-    if cfg.w_material_range > 0 and "material_logits" in s:
-        over = (s["material_logits"].abs() - cfg.material_logit_max).clamp_min(0.0).mean(-1)
-        L["loss_material_range"] = mean_where(over, on_surf)
-    L["loss_metallic_unseen"] = zero
-    if cfg.w_metallic_unseen > 0 and "lobe_share" in s:
-        L["loss_metallic_unseen"] = mean_where(s["metallic"] * (1.0 - s["lobe_share"].detach()), lit)
-    L["loss_mask"] = (mask_bce(out.weight_sum, rays.mask, rays.weight)
-                      if (use_mask and rays.mask is not None and cfg.w_mask > 0) else zero)
-    L["loss"] = (cfg.w_r * (L["loss_r"] + L["loss_bg"]) + cfg.lambda1_surf * L["loss_surf"] + cfg.lambda2_vol * L["loss_vol"]
-                 + cfg.w_eikonal * L["loss_eik"] + cfg.w_hessian * L["loss_hess"]
-                 + cfg.w_light * L["loss_light"] + cfg.w_mask * L["loss_mask"]
-                 + cfg.w_albedo_smooth * L["loss_albedo_smooth"] + cfg.w_albedo_flat * L["loss_albedo_flat"]
-                 + cfg.w_brdf_smooth * L["loss_brdf_smooth"] + cfg.w_material_range * L["loss_material_range"]
-                 + cfg.w_metallic_unseen * L["loss_metallic_unseen"])
-    return L
+    return LossBatch(out=out, rays=rays, cfg=cfg, use_mask=use_mask, specular=specular, background=background,
+                     zero=zero, gt=gt, fg=fg, r_sdf=r_sdf, r_enc=r_enc, vol_enc=vol_enc, gt_all=gt_all,
+                     colour_w=colour_w, fg_all=fg_all, outside_q=outside_q, surf_rays=surf_rays, on_surf=on_surf,
+                     lit=lit, surface_points=surface_points)
+
+
+def _needs(thing, weight: str, what: str):
+    if thing is None:
+        raise ValueError(f"loss.{weight} > 0 needs {what}")
+    return thing
+
+
+def loss_radiance(b: LossBatch) -> Tensor:
+    return l1_masked(b.r_enc, b.gt_all, b.colour_w)
+
+
+def loss_background(b: LossBatch) -> Tensor:
+    if not b.background or b.fg_all is None:
+        return b.zero
+    return l1_masked(b.r_enc, b.gt_all, (1.0 - b.fg_all) * (b.outside_q if b.outside_q is not None else 1.0))
+
+
+def loss_surface(b: LossBatch) -> Tensor:
+    wt = b.surf_rays * (1.0 - b.out.w_max.detach())
+    err = (linear_to_srgb(b.out.rgb_surf) - b.r_sdf.detach()).abs().mean(-1)
+    return (err * wt).sum() / b.surf_rays.sum().clamp_min(1.0)
+
+
+def loss_volume(b: LossBatch) -> Tensor:
+    return l1_masked(b.vol_enc, b.gt_all, b.colour_w)
+
+
+def loss_eikonal(b: LossBatch) -> Tensor:
+    return weighted_mean(b.out.eikonal, b.out.eikonal_weight) if b.out.eikonal.numel() else b.zero
+
+
+def loss_hessian(b: LossBatch) -> Tensor:
+    return b.out.hessian.mean() if b.out.hessian.numel() else b.zero
+
+
+def loss_light(b: LossBatch) -> Tensor:
+    s, m, c = b.out.surface, b.on_surf, b.cfg
+    return light_variance_loss(s.x[m], s.normal[m], s.light_dir[m], s.intensity[m], c.lambda3, c.lambda4, c.lambda5)
+
+
+def loss_mask(b: LossBatch) -> Tensor:
+    if not b.use_mask or b.rays.mask is None:
+        return b.zero
+    return mask_bce(b.out.weight_sum, b.rays.mask, b.rays.weight)
+
+
+def loss_albedo_smooth(b: LossBatch) -> Tensor:
+    s = b.out.surface
+    j = _needs(s.jitter, "w_albedo_smooth", "render.albedo_smooth_sigma > 0 (a training render's Surface.jitter)")
+    return mean_where((s.albedo - j.albedo).abs().mean(-1), b.on_surf)
+
+
+def loss_albedo_flat(b: LossBatch) -> Tensor:
+    if b.specular or b.lit.sum() < 2:
+        return b.zero
+    lum = b.out.surface.albedo[b.lit].mean(-1)
+    return (lum / lum.detach().mean().clamp_min(1e-4) - 1.0).abs().mean()
+
+
+def loss_brdf_smooth(b: LossBatch) -> Tensor:
+    s = b.out.surface
+    j = _needs(s.jitter, "w_brdf_smooth", "render.albedo_smooth_sigma > 0 (a training render's Surface.jitter)")
+    return mean_where((s.roughness - j.roughness).abs() + (s.metallic - j.metallic).abs(), b.on_surf)
+
+
+def loss_material_range(b: LossBatch) -> Tensor:
+    z = _needs(b.out.surface.material_logits, "w_material_range", "a training render (material logits)")
+    return mean_where((z.abs() - b.cfg.material_logit_max).clamp_min(0.0).mean(-1), b.on_surf)
+
+
+def loss_metallic_unseen(b: LossBatch) -> Tensor:
+    lobe = _needs(b.out.lobe, "w_metallic_unseen", "a render with SurfaceRequest(lobe_split=True)")
+    return mean_where(b.out.surface.metallic * (1.0 - lobe.share.detach()), b.lit)
+
+
+def loss_surface_points(b: LossBatch) -> Tensor:
+    return b.surface_points()
+
+
+@dataclass(frozen=True)
+class LossTerm:
+    """One named loss term: its record key, the :class:`LossConfig` field holding its weight, and
+    ``fn(LossBatch) -> []``. A term whose weight is 0 is not computed (its value is 0)."""
+
+    name: str
+    weight: str
+    fn: Callable[[LossBatch], Tensor]
+    lobe_split: bool = False
+    """The term reads :attr:`RenderOutput.lobe` (the render must be asked for it)."""
+    optional: bool = False
+    """Only present when the batch has what it reads (``surface_points``)."""
+
+
+LOSS_TERMS: tuple[LossTerm, ...] = (
+    LossTerm("loss_r", "w_r", loss_radiance),
+    LossTerm("loss_bg", "w_r", loss_background),
+    LossTerm("loss_surf", "lambda1_surf", loss_surface),
+    LossTerm("loss_vol", "lambda2_vol", loss_volume),
+    LossTerm("loss_eik", "w_eikonal", loss_eikonal),
+    LossTerm("loss_hess", "w_hessian", loss_hessian),
+    LossTerm("loss_light", "w_light", loss_light),
+    LossTerm("loss_mask", "w_mask", loss_mask),
+    LossTerm("loss_albedo_smooth", "w_albedo_smooth", loss_albedo_smooth),
+    LossTerm("loss_albedo_flat", "w_albedo_flat", loss_albedo_flat),
+    LossTerm("loss_brdf_smooth", "w_brdf_smooth", loss_brdf_smooth),
+    LossTerm("loss_material_range", "w_material_range", loss_material_range),
+    LossTerm("loss_metallic_unseen", "w_metallic_unseen", loss_metallic_unseen, lobe_split=True),
+    LossTerm("loss_surface_points", "w_surface_points", loss_surface_points, optional=True),
+)
+"""Every term, in the order they are computed and summed."""
+
+
+def needs_lobe_split(cfg: LossConfig) -> bool:
+    """Whether a term with a non-zero weight reads :attr:`RenderOutput.lobe`."""
+    return any(t.lobe_split and getattr(cfg, t.weight) > 0 for t in LOSS_TERMS)
+
+
+def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, specular: bool = True,
+                   background: bool = False, background_rays: tuple[Tensor, RayBatch] | None = None,
+                   surface_points: Callable[[], Tensor] | None = None) -> dict[str, Tensor]:
+    """Every term of :data:`LOSS_TERMS` by name (unweighted; 0 where its weight is 0), for one
+    render ``out`` of ``rays``; arguments as :func:`loss_batch`. ``loss_surface_points`` is
+    present only with ``surface_points``. :func:`total_loss` sums them."""
+    b = loss_batch(out, rays, cfg, use_mask=use_mask, specular=specular, background=background,
+                   background_rays=background_rays, surface_points=surface_points)
+    terms = {}
+    for t in LOSS_TERMS:
+        if t.optional and b.surface_points is None:
+            continue
+        terms[t.name] = t.fn(b) if getattr(cfg, t.weight) > 0 else b.zero
+    return terms
+
+
+def total_loss(terms: dict[str, Tensor], cfg: LossConfig) -> Tensor:
+    """``sum_k w_k L_k`` over the terms present, in :data:`LOSS_TERMS` order."""
+    total = None
+    for t in LOSS_TERMS:
+        if t.name in terms:
+            v = getattr(cfg, t.weight) * terms[t.name]
+            total = v if total is None else total + v
+    return total

@@ -9,6 +9,7 @@ from torch import Tensor, nn
 
 from nepf_core.fields.background import BackgroundConfig, BackgroundVolume
 from nepf_core.fields.heads import Deviation, HeadConfig, MaterialField, PhotonField, RadianceField
+from nepf_core.fields.sdf_grid import GridSDF, GridSDFConfig
 from nepf_core.fields.sdf_mlp import MLPSDF, MLPSDFConfig
 
 
@@ -20,8 +21,8 @@ class ModelConfig:
     """``mlp`` (paper) or ``grid`` (fast)."""
     sdf_mlp: MLPSDFConfig = field(default_factory=MLPSDFConfig)
     """Used when ``sdf_kind == "mlp"``."""
-    sdf_grid: dict = field(default_factory=dict)
-    """Keyword arguments of :class:`nepf_core.fields.sdf_grid.GridSDFConfig` (``sdf_kind == "grid"``)."""
+    sdf_grid: GridSDFConfig = field(default_factory=GridSDFConfig)
+    """Used when ``sdf_kind == "grid"`` (fast)."""
     radiance: HeadConfig = field(default_factory=lambda: HeadConfig(activation="siren", n_freqs_v=4))
     """Outgoing radiance network (paper: 8x256 SIREN)."""
     photon: HeadConfig = field(default_factory=lambda: HeadConfig(activation="relu"))
@@ -50,8 +51,7 @@ def build_sdf(cfg: ModelConfig) -> nn.Module:
     if cfg.sdf_kind == "mlp":
         return MLPSDF(cfg.sdf_mlp)
     if cfg.sdf_kind == "grid":
-        from nepf_core.fields.sdf_grid import GridSDF, GridSDFConfig
-        return GridSDF(GridSDFConfig(**cfg.sdf_grid))
+        return GridSDF(cfg.sdf_grid)
     raise ValueError(f"unknown sdf_kind {cfg.sdf_kind!r} (mlp|grid)")
 
 

@@ -46,11 +46,11 @@ def radiance_view_spread(model, x: Tensor, cam_centers: Tensor, *, min_cos: floa
     nan = {"spread": float("nan"), "n_points": 0}
     if x.shape[0] == 0 or cam_centers.shape[0] < 2:
         return nan
-    from nepf_core.fields.gradients import sdf_gradient_central
+    from nepf_core.fields.fd_normals import sdf_gradient_fd
     if cam_centers.shape[0] > max_cams:
         cam_centers = cam_centers[torch.linspace(0, cam_centers.shape[0] - 1, max_cams).round().long()]
     eps = fd_step if fd_step is not None else float(getattr(model.sdf, "fd_step", lambda: 1e-3)())
-    g, _ = sdf_gradient_central(model.sdf.sdf, x, max(eps, 1e-4))
+    g, _ = sdf_gradient_fd(model.sdf.sdf, x, max(eps, 1e-4), scheme="central", center="mean")
     n = g / g.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     to_cam = cam_centers[None, :, :].to(x) - x[:, None, :]                    # [N, C, 3]
     to_cam = to_cam / to_cam.norm(dim=-1, keepdim=True).clamp_min(1e-8)

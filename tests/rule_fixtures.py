@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from types import SimpleNamespace
 
@@ -9,22 +10,23 @@ import torch
 
 from nepf_core.config import fast, tiny
 from nepf_core.train.adaptivity import Adaptivity
-from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.run_state import RunState
 
 
 def make_adapt(*, enabled=True, iters_fixed=True, iters=1000, w_hessian=5e-4, plateau_window=1, preset=tiny,
-               **rules):
+               w_albedo_flat=None, **rules):
     """``(Adaptivity, RunState)`` on ``preset`` (``tiny``); the plateau tests hand-work single
     evaluations (``plateau_window=1``) unless they test the running mean. ``rules``: RuleConfig
-    overrides."""
+    overrides (the config's ``rules`` section)."""
     cfg = preset()
     cfg.train.iters = iters
     cfg.train.adaptive = enabled
     cfg.loss.w_hessian = w_hessian
-    cfg.train.plateau_window = plateau_window
+    if w_albedo_flat is not None:
+        cfg.loss.w_albedo_flat = w_albedo_flat
+    cfg.rules = dataclasses.replace(cfg.rules, plateau_window=plateau_window, **rules)
     rs = RunState.from_config(cfg)
-    return Adaptivity(RuleConfig.from_config(cfg, iters_fixed=iters_fixed, **rules), rs), rs
+    return Adaptivity(cfg, rs, iters_fixed=iters_fixed), rs
 
 
 def resumed(a: Adaptivity, rs: RunState, **kw):
@@ -37,11 +39,11 @@ def resumed(a: Adaptivity, rs: RunState, **kw):
 
 
 def fake_out(share=None, metallic=0.0, n=32, opaque=True):
-    """A RenderOutput-like object: ``n`` rays, all on the surface when ``opaque``."""
-    surf = {"metallic": torch.full((n,), float(metallic))}
-    if share is not None:
-        surf["specular"] = torch.full((n,), float(share))
-    return SimpleNamespace(weight_sum=torch.full((n,), 0.9 if opaque else 0.1), surf=surf)
+    """A RenderOutput-like object: ``n`` rays, all on the surface when ``opaque``; with ``share`` the
+    lobe split of a specular check (pass ``check=True`` to ``after_step``)."""
+    lobe = None if share is None else SimpleNamespace(share=torch.full((n,), float(share)))
+    return SimpleNamespace(weight_sum=torch.full((n,), 0.9 if opaque else 0.1), lobe=lobe,
+                           surface=SimpleNamespace(metallic=torch.full((n,), float(metallic))))
 
 
 def losses(eik=0.0):

@@ -12,10 +12,11 @@ import numpy as np
 import torch
 
 from nepf_core.config import tiny
-from nepf_core.losses import LossConfig, compute_losses
+from nepf_core.losses import LossConfig, compute_losses, total_loss
 from nepf_core.model import NePFModel
 from nepf_core.rays import RayBatch, unlit_threshold
 from nepf_core.render.renderer import RenderOutput, render_rays
+from nepf_core.render.surface import MaterialSample, Surface
 
 
 def test_unlit_threshold_is_relative_to_the_foreground_99th_percentile():
@@ -54,7 +55,7 @@ def _albedo_and_roughness_grads(unlit: bool):
     out = render_rays(model, rays, cfg.render, train=True)
     assert float(out.weight_sum.detach().mean()) > 0.5   # the rays hit the init sphere
     lc = LossConfig(w_r=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0, w_mask=0.0)
-    loss = compute_losses(out, rays, lc, use_mask=True)["loss"]
+    loss = total_loss(compute_losses(out, rays, lc, use_mask=True), lc)
     loss.backward()
     bias_grad = model.material.mlp.layers[-1].bias.grad
     return bias_grad[:3].abs().sum().item(), bias_grad[3:].abs().sum().item(), \
@@ -72,12 +73,14 @@ def test_lit_rays_train_the_albedo():
     assert albedo_g > 0.0 and rm_g > 0.0 and photon_g > 0.0
 
 
-def _surface_output(R: int, **surf) -> RenderOutput:
-    """A RenderOutput of ``R`` opaque rays whose max-weight-point values are zero except ``surf``."""
+def _surface_output(R: int, albedo_jitter=None, **surf) -> RenderOutput:
+    """A RenderOutput of ``R`` opaque rays whose surface values are zero except ``surf`` (and the
+    jittered albedo ``albedo_jitter``)."""
     z3, z1 = torch.zeros(R, 3), torch.zeros(R)
-    base = {"albedo": z3, "x": z3, "normal": z3, "light_dir": z3, "intensity": z1}
+    base = dict(albedo=z3, x=z3, normal=z3, direction=z3, light_dir=z3, intensity=z1, roughness=z1, metallic=z1)
+    jitter = None if albedo_jitter is None else MaterialSample(albedo_jitter, z1, z1)
     return RenderOutput(rgb_r=z3, rgb_vol=z3, rgb_surf=z3, weight_sum=torch.ones(R), w_max=z1, depth=z1,
-                        eikonal=torch.zeros(0), hessian=torch.zeros(0), surf={**base, **surf})
+                        eikonal=torch.zeros(0), hessian=torch.zeros(0), surface=Surface(**{**base, **surf}, jitter=jitter))
 
 
 def _prior_only(**weights) -> LossConfig:
@@ -98,14 +101,14 @@ def test_albedo_smoothness_loss_hand_value_and_renderer_output():
     # per-ray mean |diff|: (0.1 + 0 + 0.3) / 3, 0, 0.9 -> mean over the 3 foreground rays
     expected = ((0.4 / 3) + 0.0 + 0.9) / 3
     assert abs(L["loss_albedo_smooth"].item() - expected) < 1e-6
-    assert abs(L["loss"].item() - 2.0 * expected) < 1e-6
+    assert abs(total_loss(L, lc).item() - 2.0 * expected) < 1e-6
 
     cfg, model, rays = _model_and_rays(unlit=False)
     cfg.render.albedo_smooth_sigma = 0.02
     out = render_rays(model, rays, cfg.render, train=True)
-    assert out.surf["albedo_jitter"].shape == (len(rays), 3)
-    assert not torch.equal(out.surf["albedo_jitter"], out.surf["albedo"])
-    assert "albedo_jitter" not in render_rays(model, rays, cfg.render, train=False).surf
+    assert out.surface.jitter.albedo.shape == (len(rays), 3)
+    assert not torch.equal(out.surface.jitter.albedo, out.surface.albedo)
+    assert render_rays(model, rays, cfg.render, train=False).surface.jitter is None
 
 
 def test_albedo_flat_pulls_lit_luminance_toward_the_batch_mean_only_without_the_lobe():
@@ -119,16 +122,16 @@ def test_albedo_flat_pulls_lit_luminance_toward_the_batch_mean_only_without_the_
     rays = RayBatch(torch.zeros(R, 3), torch.zeros(R, 3), rgb=torch.zeros(R, 3),
                     mask=torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0]), unlit=torch.tensor([False, False, True, False, False]))
     lc = _prior_only(w_albedo_flat=2.0)
-    assert compute_losses(out, rays, lc, use_mask=True)["loss"].item() == 0.0   # lobe on
+    assert total_loss(compute_losses(out, rays, lc, use_mask=True), lc).item() == 0.0   # lobe on
     L = compute_losses(out, rays, lc, use_mask=True, specular=False)
     assert abs(L["loss_albedo_flat"].item() - 2.0 / 9.0) < 1e-6
-    assert abs(L["loss"].item() - 4.0 / 9.0) < 1e-6
-    L["loss"].backward()
+    assert abs(total_loss(L, lc).item() - 4.0 / 9.0) < 1e-6
+    total_loss(L, lc).backward()
     g = albedo.grad
     assert torch.all(g[0] < 0) and torch.all(g[3] > 0)         # the dark one brightens, the bright one darkens
     assert torch.all(g[1] == 0) and torch.all(g[2] == 0) and torch.all(g[4] == 0)
     # equal luminance, any colours: nothing to flatten (chroma is left to the images)
-    out.surf["albedo"] = torch.tensor([[0.9, 0.6, 0.3]] * 2 + [[0.6, 0.6, 0.6]] * 3)
+    out.surface.albedo = torch.tensor([[0.9, 0.6, 0.3]] * 2 + [[0.6, 0.6, 0.6]] * 3)
     assert compute_losses(out, rays, lc, use_mask=True, specular=False)["loss_albedo_flat"].item() < 1e-7
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import time
+import types
 
 import pytest
 from fastapi.testclient import TestClient
@@ -80,7 +81,7 @@ def test_other_owner_gets_404_on_every_route(env):
     assert client.get(f"/jobs/{job_id}/artifacts/asset.glb", headers=a).status_code == 200
 
 
-def test_sse_ticket_is_job_scoped_and_expires(env):
+def test_sse_ticket_is_job_scoped_and_expires(env, monkeypatch):
     client, svc, job_id, alice, bob = env
     a = {"Authorization": f"Bearer {alice}"}
     with svc.Session() as s:   # make the stream end immediately
@@ -92,17 +93,22 @@ def test_sse_ticket_is_job_scoped_and_expires(env):
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/event-stream")
     assert "event: end" in r.text and "event: metrics" in r.text
     # a ticket for another job, a forged one, an expired one: 401
-    other = make_ticket(svc.secret, "alice", "f" * 32, 60, token_id(svc, "alice"))
+    other = make_ticket(svc.secret, "alice", "f" * 32, token_id(svc, "alice"))
     assert client.get(f"/jobs/{job_id}/events?ticket={other}").status_code == 401
     forged = t["ticket"][:-2] + ("AA" if not t["ticket"].endswith("AA") else "BB")
     assert client.get(f"/jobs/{job_id}/events?ticket={forged}").status_code == 401
-    expired = make_ticket(svc.secret, "alice", job_id, -1, token_id(svc, "alice"))
+    # a ticket signed NEPF_TICKET_TTL_S + 1 seconds ago (its timestamp is part of the signed text)
+    import itsdangerous.timed
+    past = time.time() - svc.settings.ticket_ttl_s - 1
+    monkeypatch.setattr(itsdangerous.timed, "time", types.SimpleNamespace(time=lambda: past))
+    expired = make_ticket(svc.secret, "alice", job_id, token_id(svc, "alice"))
+    monkeypatch.undo()
     assert client.get(f"/jobs/{job_id}/events?ticket={expired}").status_code == 401
     # bob's valid ticket for alice's job id: 404, like every other route
-    bobs = make_ticket(svc.secret, "bob", job_id, 60, token_id(svc, "bob"))
+    bobs = make_ticket(svc.secret, "bob", job_id, token_id(svc, "bob"))
     assert client.get(f"/jobs/{job_id}/events?ticket={bobs}").status_code == 404
     # a ticket naming bob's token for alice: the token must be the owner's own
-    mixed = make_ticket(svc.secret, "alice", job_id, 60, token_id(svc, "bob"))
+    mixed = make_ticket(svc.secret, "alice", job_id, token_id(svc, "bob"))
     assert client.get(f"/jobs/{job_id}/events?ticket={mixed}").status_code == 401
 
 

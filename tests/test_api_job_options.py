@@ -85,3 +85,38 @@ def test_up_axis_choices_are_the_cores():
     from api.job_config import UP_AXIS_CHOICES
     from nepf_core.up_axis import UP_CHOICES
     assert UP_AXIS_CHOICES == UP_CHOICES
+
+
+def test_the_documented_options_are_the_models():
+    """docs/SERVICE.md's "Job options" table lists exactly the fields of ``JobConfig``, with the
+    values its constraints allow (the model is the one source: the API, the schema the viewer's
+    form reads, and this table)."""
+    import re
+    from pathlib import Path
+
+    from api.job_config import JobConfig, job_config_schema
+    from jobstore.settings import Settings
+
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "SERVICE.md").read_text()
+    table = doc[doc.index("### Job options"):]
+    table = table[:table.index("\n\n", table.index("| key |"))]
+    rows = {m.group(1): m.group(2) for m in re.finditer(r"^\| `(\w+)` \| ([^|]*) \|", table, re.M)}
+    assert set(rows) == set(JobConfig.model_fields), set(rows) ^ set(JobConfig.model_fields)
+    props = job_config_schema(Settings())["properties"]
+
+    def bounds(key):
+        branch = next(b for b in props[key].get("anyOf", [props[key]]) if b.get("type") != "null")
+        return {**props[key], **branch}
+
+    def number(x):
+        return f"{x:,}" if "," in rows["iters"] + rows["max_faces"] else str(x)
+
+    assert rows["preset"] == ", ".join(f"`{p}`" for p in bounds("preset")["enum"])
+    assert rows["iters"] == f"{number(bounds('iters')['minimum'])}..{number(bounds('iters')['maximum'])}"
+    tb = bounds("time_budget_s")
+    assert rows["time_budget_s"] == f"({tb['exclusiveMinimum']}, {tb['maximum']}]"
+    assert str(bounds("name")["maxLength"]) in rows["name"]
+    assert f">= {bounds('max_image_side')['minimum']}" in rows["max_image_side"]
+    assert rows["texture_size"] == ", ".join(map(str, bounds("texture_size")["enum"]))
+    assert rows["max_faces"] == f"{number(bounds('max_faces')['minimum'])}..{number(bounds('max_faces')['maximum'])}"
+    assert all(f"`{a}`" in rows["up_axis"] for a in props["up_axis"]["enum"] if a is not None)

@@ -19,7 +19,7 @@ import uvicorn
 from sqlalchemy import func, select
 
 from api.errors import ApiError
-from api.routes.jobs import CONTENT_TYPES, content_type_for
+from api.artifacts import CONTENT_TYPES, content_type_for
 from api.settings import Settings
 from api.zip_safety import RATIO_FLOOR_BYTES, extract_members, extraction_budget
 from jobstore.models import Job

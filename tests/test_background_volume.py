@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from nepf_core.fields.background import BackgroundConfig, BackgroundVolume, contract, sphere_exit
-from nepf_core.losses import LossConfig, compute_losses
+from nepf_core.losses import LossConfig, compute_losses, total_loss
 from nepf_core.train.rules.masks import decide_masks, lit_outside_masks
 
 from loss_fixtures import render_output
@@ -88,7 +88,7 @@ def test_background_loss_by_hand():
     L = compute_losses(render_output(4, rgb=pred), rays, cfg, use_mask=True, background=True)
     assert float(L["loss_r"]) == pytest.approx(3 / 6)        # foreground: one ray off by 1 in 3 channels
     assert float(L["loss_bg"]) == pytest.approx(2 / 6)       # outside: one ray off by 1 in 2 channels
-    assert float(L["loss"]) == pytest.approx(3 / 6 + 2 / 6)
+    assert float(total_loss(L, cfg)) == pytest.approx(3 / 6 + 2 / 6)
     L = compute_losses(render_output(4, rgb=pred), rays, cfg, use_mask=True, background=False)
     assert float(L["loss_bg"]) == 0.0
 

@@ -142,8 +142,8 @@ def test_variants_build_their_baselines():
     assert on.model.occupancy_resolution == 0 and not on.train.adaptive
     assert on.render == base.render and on.model.sdf_grid == base.model.sdf_grid
     nv = build_config("fast", None, VARIANTS["naive"])
-    g = nv.model.sdf_grid   # GridSDFConfig keyword arguments
-    assert (g["n_levels"], g["base_resolution"], g["max_resolution"]) == (1, 96, 96) and not nv.train.adaptive
+    g = nv.model.sdf_grid   # a GridSDFConfig
+    assert (g.n_levels, g.base_resolution, g.max_resolution) == (1, 96, 96) and not nv.train.adaptive
     assert (nv.render.n_samples, nv.render.n_importance, nv.render.normals) == (48, 0, "fd")
     assert nv.model.occupancy_resolution == 0 and nv.train.batch_rays == 1024
     ad = build_config("fast", None, VARIANTS["adaptive"])

@@ -51,10 +51,10 @@ def test_tiny_fit_render_eval_mesh(small_scene_dir, tmp_path):
     assert ev["psnr_masked"] > 5.0
     # the radiance scores are the saved radiance renders against the held-out images, recomputed here
     from nepf_core.data.detect import load_scene
-    from nepf_core.evaluate import srgb_np
+    from nepf_core.color import linear_to_srgb
     held = load_scene(small_scene_dir / "gt" / "dtu_test")
     rad = np.load(run / "eval" / "renders" / "arrays.npz")["radiance"]
-    se = (srgb_np(rad).astype(np.float64) - srgb_np(held.images).astype(np.float64)) ** 2
+    se = (linear_to_srgb(rad).astype(np.float64) - linear_to_srgb(held.images).astype(np.float64)) ** 2
     assert ev["radiance_psnr_full"] == pytest.approx(-10 * np.log10(se.mean()), abs=1e-6)
     assert ev["radiance_psnr_masked"] == pytest.approx(-10 * np.log10(se[held.masks].mean()), abs=1e-6)
     assert ev["radiance_psnr_masked"] != pytest.approx(ev["psnr_masked"], abs=1e-6)   # a different channel

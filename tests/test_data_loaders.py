@@ -15,7 +15,7 @@ from datagen import (copy_scene, gt_scene, project_opencv, project_scene, random
 from nepf_core.data.blender import load_blender
 from nepf_core.data.detect import detect_format, load_scene, resolve_dataset
 from nepf_core.data.dtu import decompose_projection, load_dtu
-from nepf_core.data.images import linear_to_srgb, srgb_to_linear
+from nepf_core.color import linear_to_srgb, srgb_to_linear
 from nepf_core.data.ingp import (distort_image, distort_points, load_ingp, undistort_image,
                                  undistort_points)
 from nepf_core.data.normalize import normalization_from_cameras

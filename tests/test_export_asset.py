@@ -27,7 +27,7 @@ from export_fixtures import METALLIC, ROUGHNESS, SphereQuery, albedo_numpy, simi
 from nepf_core.export import export_asset, write_manifest
 from nepf_core.export.manifest import ARTIFACT_KINDS
 from nepf_core.export.previews import BACKGROUND
-from nepf_core.export.uv_bake import srgb_to_linear
+from nepf_core.color import srgb_to_linear
 from nepf_core.up_axis import UpFrame, gltf_from_world
 
 REPO = Path(__file__).resolve().parents[1]

@@ -17,7 +17,8 @@ from nepf_core.export.light_field import fit_lights
 from nepf_core.export.manifest import artifact_kind
 from nepf_core.export.mesh import decimate_mesh, extract_mesh, mesh_to_world
 from nepf_core.export.previews import render_previews
-from nepf_core.export.uv_bake import fill_push_pull, linear_to_srgb, rasterize_uv, srgb_to_linear
+from nepf_core.color import linear_to_srgb, srgb_to_linear
+from nepf_core.export.uv_bake import fill_push_pull, rasterize_uv
 
 
 def test_empty_sdf_raises_clear_error(tmp_path):

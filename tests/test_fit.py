@@ -135,7 +135,7 @@ def test_nonfinite_loss_skips_then_fails(small_scene, tmp_path, monkeypatch):
         L = real(out, rays, cfg, use_mask=use_mask, **kw)
         calls["n"] += 1
         if calls["n"] in (2, 3):
-            L["loss"] = L["loss"] * float("nan")
+            L["loss_r"] = L["loss_r"] * float("nan")
         return L
 
     monkeypatch.setattr(loopmod, "compute_losses", poisoned)
@@ -149,7 +149,7 @@ def test_nonfinite_loss_skips_then_fails(small_scene, tmp_path, monkeypatch):
     calls["n"] = -100  # poison every step now
     monkeypatch.setattr(loopmod, "compute_losses",
                         lambda out, rays, cfg, use_mask, **kw: {**real(out, rays, cfg, use_mask=use_mask, **kw),
-                                                                "loss": torch.tensor(float("inf"))})
+                                                                "loss_r": torch.tensor(float("inf"))})
     cfg = _cfg(20)
     cfg.train.max_nonfinite_steps = 4
     with pytest.raises(FitError, match="non-finite"):

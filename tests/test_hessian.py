@@ -173,6 +173,7 @@ def test_renderer_tiny_gets_the_term_and_fast_never_computes_it(monkeypatch):
     from nepf_core.config import fast, tiny
     from nepf_core.model import NePFModel
     from nepf_core.render import renderer as renderer_mod
+    from nepf_core.render import weights as weights_mod
 
     torch.manual_seed(0)
     cfg = tiny()
@@ -187,7 +188,7 @@ def test_renderer_tiny_gets_the_term_and_fast_never_computes_it(monkeypatch):
 
     def forbidden(*a, **k):
         raise AssertionError("fast must not compute the Hessian")
-    monkeypatch.setattr(renderer_mod, "sdf_hessian_norm", forbidden)
+    monkeypatch.setattr(weights_mod, "sdf_hessian_norm", forbidden)
     fcfg = fast()
     assert fcfg.loss.w_hessian == 0.0
     fcfg.model.occupancy_resolution = 0  # no occupancy grid to fill: every ray is rendered
@@ -199,14 +200,15 @@ def test_renderer_grid_sdf_in_midpoint_mode_uses_the_fd_hessian(monkeypatch):
     from nepf_core.config import fast
     from nepf_core.model import NePFModel
     from nepf_core.render import renderer as renderer_mod
+    from nepf_core.render import weights as weights_mod
 
     calls = []
-    real = renderer_mod.sdf_hessian_norm
+    real = weights_mod.sdf_hessian_norm
 
     def spy(*a, **k):
         calls.append(k.get("gradient"))
         return real(*a, **k)
-    monkeypatch.setattr(renderer_mod, "sdf_hessian_norm", spy)
+    monkeypatch.setattr(weights_mod, "sdf_hessian_norm", spy)
     cfg = fast()
     cfg.model.occupancy_resolution = 0
     cfg.render.alpha_mode, cfg.render.head_weight_threshold = "midpoint", 0.0

@@ -148,6 +148,12 @@ def test_fit_holdout_every_evaluates_the_held_out_views(tmp_path, capsys):
     assert json.loads((run / "summary.json").read_text())["split"] == split
     assert json.loads((run / "report.json").read_text())["split"] == split
     assert '"n_test": 5' in out   # the printed summary says it too
+    # the latest evaluation's picture of held-out view 0: render | truth | error at the eval stride
+    assert rec["preview"] == "holdout/latest.png"
+    from PIL import Image
+    from nepf_core.holdout_preview import GAP
+    with Image.open(run / rec["preview"]) as im:
+        assert im.size == (3 * 12 + 2 * GAP, 12) and im.mode == "RGB"   # 24 px at stride 2
 
 
 def test_fit_default_split_with_and_without_eval_test(tmp_path, capsys):

@@ -4,7 +4,7 @@ unseen-lobe metallic term, by hand-worked values, and the renderer feeding them.
 import pytest
 import torch
 
-from nepf_core.losses import LossConfig, compute_losses
+from nepf_core.losses import LossConfig, compute_losses, total_loss
 from nepf_core.rays import RayBatch
 
 from loss_fixtures import render_output
@@ -20,14 +20,15 @@ def test_material_range_by_hand():
     logits = torch.tensor([[0.0, 4.0, -2.5, 5.5, 0.0],     # over by 1 and 2.5: mean 3.5 / 5 = 0.7
                            [2.5, -2.9, 2.9, 0.0, 0.0],      # within: 0
                            [10.0, 0.0, 0.0, 0.0, 0.0]])     # a ray off the surface: not counted
-    surf = {"material_logits": logits.clone().requires_grad_(True)}
+    z = logits.clone().requires_grad_(True)
     rays = RayBatch(origins=torch.zeros(3, 3), directions=torch.ones(3, 3), rgb=torch.zeros(3, 3),
                     mask=torch.tensor([1.0, 1.0, 0.0]))
-    L = compute_losses(render_output(3, surf=surf), rays, _cfg(w_material_range=2.0), use_mask=True)
+    cfg = _cfg(w_material_range=2.0)
+    L = compute_losses(render_output(3, surface={"material_logits": z}), rays, cfg, use_mask=True)
     assert float(L["loss_material_range"].detach()) == pytest.approx((0.7 + 0.0) / 2)
-    assert float(L["loss"].detach()) == pytest.approx(2.0 * 0.35)
-    L["loss"].backward()
-    g = surf["material_logits"].grad
+    assert float(total_loss(L, cfg).detach()) == pytest.approx(2.0 * 0.35)
+    total_loss(L, cfg).backward()
+    g = z.grad
     # d/dz of 2 * mean_rays mean_k relu(|z| - 3): 2 / (2 rays * 5 channels) * sign(z) where over
     assert g[0, 1] == pytest.approx(0.2) and g[0, 3] == pytest.approx(0.2)
     assert g[0, 2] == 0 and g[1].abs().sum() == 0 and g[2].abs().sum() == 0
@@ -36,43 +37,57 @@ def test_material_range_by_hand():
 def test_metallic_unseen_by_hand():
     metallic = torch.tensor([0.8, 0.8, 0.5, 0.9]).requires_grad_(True)
     share = torch.tensor([0.0, 1.0, 0.5, 0.0])   # ray 3 is unlit: not counted
-    surf = {"metallic": metallic, "lobe_share": share}
     rays = RayBatch(origins=torch.zeros(4, 3), directions=torch.ones(4, 3), rgb=torch.zeros(4, 3),
                     mask=torch.ones(4), unlit=torch.tensor([False, False, False, True]))
-    L = compute_losses(render_output(4, surf=surf), rays, _cfg(w_metallic_unseen=1.0), use_mask=True)
+    cfg = _cfg(w_metallic_unseen=1.0)
+    out = render_output(4, surface={"metallic": metallic}, lobe_share=share)
+    L = compute_losses(out, rays, cfg, use_mask=True)
     # (0.8 * 1 + 0.8 * 0 + 0.5 * 0.5) / 3 lit rays
     assert float(L["loss_metallic_unseen"].detach()) == pytest.approx((0.8 + 0.25) / 3)
-    L["loss"].backward()
+    total_loss(L, cfg).backward()
     assert torch.allclose(metallic.grad, torch.tensor([1 / 3, 0.0, 0.5 / 3, 0.0]))
+    # the term reads the render's lobe split: a render not asked for it is an error, not a silent 0
+    with pytest.raises(ValueError, match="lobe_split"):
+        compute_losses(render_output(4, surface={"metallic": metallic}), rays, cfg, use_mask=True)
 
 
 def test_training_render_feeds_both_priors():
     """A training render returns the material logits at the surface point (sigmoid of them is
-    the shaded material) and the lobe's share in [0, 1]; an inference render returns neither logits."""
+    the shaded material); asked for it, the lobe split of L_surf, which is L_surf's part above the
+    same surface shaded without the lobe, ``s = max(0, sum_c (L_surf - L_d)) / sum_c L_surf``
+    (recomputed here from the BSDF); an inference render returns no logits."""
+    from nepf_core import bsdf
     from nepf_core.config import fast
     from nepf_core.model import NePFModel
-    from nepf_core.render.renderer import render_rays
+    from nepf_core.render.renderer import SurfaceRequest, render_rays
 
     torch.manual_seed(0)
     cfg = fast()
     model = NePFModel(cfg.model)
     o = torch.tensor([[0.0, 0.0, -2.5]]).repeat(32, 1)
     d = torch.nn.functional.normalize(torch.tensor([[0.0, 0.0, 1.0]]) + 0.1 * torch.randn(32, 3), dim=-1)
-    out = render_rays(model, RayBatch(o, d), cfg.render, train=True, need_lobe_share=True)
-    s = out.surf
-    z = s["material_logits"]
+    out = render_rays(model, RayBatch(o, d), cfg.render, train=True, request=SurfaceRequest(lobe_split=True))
+    s = out.surface
+    z = s.material_logits
     assert z.shape == (32, 5)
-    assert torch.allclose(torch.sigmoid(z[:, :3]), s["albedo"], atol=1e-6)
-    assert torch.allclose(torch.sigmoid(z[:, 3]), s["roughness"], atol=1e-6)
-    assert torch.allclose(torch.sigmoid(z[:, 4]), s["metallic"], atol=1e-6)
-    assert ((s["lobe_share"] >= 0) & (s["lobe_share"] <= 1)).all()
-    # the lobe rule's statistics keep their own cadence: only on renders that ask for them
-    assert "specular" not in s and "diffuse_only" not in s
-    out = render_rays(model, RayBatch(o, d), cfg.render, train=True, need_surface_extras=True, need_lobe_share=True)
-    assert torch.equal(out.surf["specular"], out.surf["lobe_share"])
+    assert torch.allclose(torch.sigmoid(z[:, :3]), s.albedo, atol=1e-6)
+    assert torch.allclose(torch.sigmoid(z[:, 3]), s.roughness, atol=1e-6)
+    assert torch.allclose(torch.sigmoid(z[:, 4]), s.metallic, atol=1e-6)
+    with torch.no_grad():
+        lit = bsdf.shade(s.normal, s.light_dir, -d, s.albedo, s.roughness[:, None], s.metallic[:, None],
+                         s.intensity[:, None], specular=True, kind=cfg.render.bsdf_kind)
+        diffuse = bsdf.shade(s.normal, s.light_dir, -d, s.albedo, s.roughness[:, None], s.metallic[:, None],
+                             s.intensity[:, None], specular=False, kind=cfg.render.bsdf_kind)
+    assert torch.allclose(out.rgb_surf, lit, atol=1e-6)          # L_surf is the full BSDF at the surface
+    want = (lit.sum(-1) - diffuse.sum(-1)).clamp_min(0) / lit.sum(-1).clamp_min(1e-6)
+    assert torch.allclose(out.lobe.share, want, atol=1e-6)
+    assert torch.allclose(out.lobe.diffuse_only, diffuse, atol=1e-6)
+    assert float(out.lobe.share.max()) > 0.0 and ((out.lobe.share >= 0) & (out.lobe.share <= 1)).all()
+    # the lobe split is computed only when asked for
+    assert render_rays(model, RayBatch(o, d), cfg.render, train=True).lobe is None
     with torch.no_grad():
         out = render_rays(model, RayBatch(o, d), cfg.render, train=False)
-    assert "material_logits" not in out.surf
+    assert out.surface.material_logits is None
 
 
 def test_light_direction_terms_pull_directions_toward_the_normals_spread():

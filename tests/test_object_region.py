@@ -18,7 +18,7 @@ import pytest
 import torch
 from scipy import ndimage
 
-from nepf_core.data.object_region import RegionConfig, decide_object_region, find_support_plane
+from nepf_core.data.object_region import RegionConfig, find_object_region, find_support_plane
 from nepf_core.data.scene import Scene
 from nepf_core.data.sparse_points import fundamental, midpoint_triangulation, sampson_distance, triangulate_scene
 from nepf_core.data.synth import look_at
@@ -120,7 +120,7 @@ def test_triangulated_points_lie_on_the_surfaces(ball_on_wall):
 
 
 def test_the_wall_is_found_before_training(ball_on_wall):
-    region = decide_object_region(ball_on_wall)
+    region = find_object_region(ball_on_wall)
     assert region.support_normal is not None, region.reason
     n = np.asarray(region.support_normal)
     # the wall is z = WALL_Z with its normal towards the cameras (+z): s(x) = z - WALL_Z
@@ -188,7 +188,7 @@ def test_export_sdf_is_cut_to_the_region_hand_worked():
 
 
 def test_the_cut_mesh_is_the_ball_alone(ball_on_wall):
-    region = decide_object_region(ball_on_wall)
+    region = find_object_region(ball_on_wall)
     uncut = extract_mesh(ball_on_wall_sdf, 64, (-1.0, 1.0))
     cut = extract_mesh(_field_query(ball_on_wall_sdf, region.halfspace()).sdf, 64, (-1.0, 1.0))
     assert uncut.bounds[0][0] < -0.95  # the wall fills the box's lower part

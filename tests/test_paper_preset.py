@@ -79,7 +79,7 @@ def test_loss_weights(built):
     cfg, _ = built
     lo = cfg.loss
     assert (lo.w_r, lo.lambda1_surf, lo.lambda2_vol) == (1.0, 3e-4, 1e-4)
-    assert lo.surf_target == "radiance" and lo.surf_one_minus_wmax
+    # L_surf is supervised by sg(L_r) and weighed by (1 - w_max): tests/test_loss_values.py
     assert (lo.w_light, lo.lambda3, lo.lambda4, lo.lambda5) == (1e-4, 1.0, 1.0, 0.1)
     assert (lo.w_eikonal, lo.w_mask) == (0.1, 0.1)  # NeuS
     assert lo.w_hessian > 0  # the paper has the term (no weight given)

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from nepf_core.relight.metrics import channel_scale, mae, material_metrics, normal_mae_deg, relight_psnr
+from nepf_core.evaluate import channel_scale
+from nepf_core.relight.metrics import mae, material_metrics, normal_mae_deg, relight_psnr
 
 SRGB_HALF = 1.055 * 0.5 ** (1 / 2.4) - 0.055       # sRGB of linear 0.5 = 0.735357
 

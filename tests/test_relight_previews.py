@@ -10,7 +10,6 @@ import pytest
 from PIL import Image
 
 from nepf_core.export.manifest import write_manifest
-from nepf_core.relight.lights import canonical_lights
 from nepf_core.relight.previews import canonical_camera, write_relit_previews
 from tests.export_fixtures import SphereQuery, similarity
 
@@ -42,9 +41,14 @@ def test_relit_previews_are_written_and_recorded(tmp_path):
     assert max(img[20:28, 20:28].max() for img in imgs) > 0           # the sphere fills the middle
     assert np.abs(imgs[0] - imgs[1]).max() > 20                       # three different lights
     rec = json.loads(paths[3].read_text())
-    want = canonical_lights(centre, q.radius * s, (0, 0, 1))
-    np.testing.assert_allclose([l["position_world"] for l in rec["lights"]], want.positions, rtol=1e-12)
-    np.testing.assert_allclose([l["intensity_rgb"] for l in rec["lights"]], want.intensities, rtol=1e-12)
+    # hand-worked: R = 0.6 * 2.5 = 1.5, so the lights are 3 R = 4.5 from the centre at elevation 45 deg
+    # and azimuths 0, 120, 240 deg measured from a_x = -y towards a_y = +x (the viewer's axes for
+    # +Z up), each with I = 2 (3 R)^2 = 40.5 (irradiance 2 at the centre)
+    h = math.sqrt(0.5)
+    dirs = np.array([[0.0, -h, h], [h * math.sin(math.radians(120)), -h * math.cos(math.radians(120)), h],
+                     [h * math.sin(math.radians(240)), -h * math.cos(math.radians(240)), h]])
+    np.testing.assert_allclose([l["position_world"] for l in rec["lights"]], centre + 4.5 * dirs, rtol=1e-12)
+    np.testing.assert_allclose([l["intensity_rgb"] for l in rec["lights"]], np.full((3, 3), 40.5), rtol=1e-12)
     assert rec["camera"]["width"] == 48 and rec["bsdf"] == "paper"
     man = write_manifest(tmp_path)
     kinds = {a["path"]: a["kind"] for a in man["artifacts"]}

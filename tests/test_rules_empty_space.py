@@ -3,6 +3,7 @@ rays that meet no occupied cell, their importance weights), with two short real 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from types import SimpleNamespace
@@ -11,8 +12,8 @@ import numpy as np
 import pytest
 import torch
 
+from nepf_core.fields.sdf_grid import GridSDFConfig
 from nepf_core.train.adaptivity import Adaptivity
-from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.run_state import RunState
 from rule_fixtures import fast, make_adapt, named, records, tiny
 
@@ -61,7 +62,7 @@ def test_mask_loss_off_when_its_weight_is_zero_and_occupancy_recorded():
     cfg = fast()
     cfg.loss.w_mask = 0.0
     rs = RunState.from_config(cfg)
-    a = Adaptivity(RuleConfig.from_config(cfg, iters_fixed=True), rs)
+    a = Adaptivity(cfg, rs, iters_fixed=True)
     a.before_training(_scene(True))
     assert rs.use_mask_loss is False and rs.background is False
     (e,) = named(a, "empty_space_skipping")
@@ -103,7 +104,7 @@ def test_fast_fit_with_masks_carves_the_visual_hull_and_leaves_empty_rays_out(tm
     make_scene(tmp_path / "s", n_views=6, n_test=0, resolution=24, supersample=1, fov_deg=75.0, write_mesh=False)
     scene = load_scene(tmp_path / "s" / "dtu")
     cfg = fast()
-    cfg.model.sdf_grid = {"base_resolution": 8, "max_resolution": 32}
+    cfg.model.sdf_grid = GridSDFConfig(base_resolution=8, max_resolution=32)
     cfg.model.occupancy_resolution = 16
     cfg.train.iters, cfg.train.batch_rays, cfg.train.log_every = 6, 64, 2
     cfg.train.sync_every, cfg.train.eval_every_s, cfg.train.occupancy_every = 0, 0.0, 3
@@ -154,7 +155,8 @@ def _sphere_model_and_rays(n_hit=24, n_miss=40):
 
 def _adapt(cfg, enabled=True, **rules):
     cfg.train.adaptive = enabled
-    return Adaptivity(RuleConfig.from_config(cfg, iters_fixed=False, **rules), RunState.from_config(cfg))
+    cfg.rules = dataclasses.replace(cfg.rules, **rules)
+    return Adaptivity(cfg, RunState.from_config(cfg), iters_fixed=False)
 
 
 def test_rays_that_meet_no_occupied_cell_leave_the_batch():
@@ -217,8 +219,8 @@ def test_kept_misses_carry_importance_weights_and_the_mask_loss_stays_unbiased()
 def test_eikonal_mean_weighs_each_sample_by_its_rays_importance_weight():
     """A ray kept with weight 3 counts like three copies of it, in the eikonal mean as in the
     mask loss, so thinning a batch does not turn the eikonal into a near-surface term."""
-    from nepf_core.losses import compute_losses, weighted_mean
-    from nepf_core.render.renderer import render_rays
+    from nepf_core.losses import compute_losses, needs_lobe_split, weighted_mean
+    from nepf_core.render.renderer import SurfaceRequest, render_rays
     assert float(weighted_mean(torch.tensor([1.0, 2.0, 3.0]), torch.tensor([1.0, 1.0, 2.0]))) == pytest.approx(2.25)
     assert float(weighted_mean(torch.tensor([1.0, 2.0, 3.0]), None)) == pytest.approx(2.0)
     cfg, model, rays = _sphere_model_and_rays(n_hit=3, n_miss=3)
@@ -234,7 +236,9 @@ def test_eikonal_mean_weighs_each_sample_by_its_rays_importance_weight():
     weighted.weight = reps.float()
 
     def terms(batch):
-        L = compute_losses(render_rays(model, batch, cfg.render, train=True), batch, cfg.loss, use_mask=True)
+        out = render_rays(model, batch, cfg.render, train=True,
+                          request=SurfaceRequest(lobe_split=needs_lobe_split(cfg.loss)))
+        L = compute_losses(out, batch, cfg.loss, use_mask=True)
         return {k: float(v.detach()) for k, v in L.items()}
     lw, ld, lu = terms(weighted), terms(dup), terms(rays.index(torch.arange(6)))
     assert ld["loss_eik"] > 1e-3
@@ -250,9 +254,9 @@ def test_left_out_misses_train_the_background_as_if_rendered_whole():
     there are more misses than SDF rays, a subset as large as the SDF batch stands for them with
     importance weights, and the losses are right in expectation. Without them, the background
     pixels would train only through the ``miss_keep`` share."""
-    from nepf_core.losses import compute_losses
+    from nepf_core.losses import compute_losses, needs_lobe_split
     from nepf_core.model import NePFModel
-    from nepf_core.render.renderer import render_background_only, render_rays
+    from nepf_core.render.renderer import SurfaceRequest, render_background_only, render_rays
 
     def setup(n_hit, n_miss):
         cfg, _, rays = _sphere_model_and_rays(n_hit=n_hit, n_miss=n_miss)
@@ -264,7 +268,8 @@ def test_left_out_misses_train_the_background_as_if_rendered_whole():
         return cfg, model, rays, _adapt(cfg, miss_keep=0.0)
 
     def losses(cfg, model, batch, **kw):
-        out = render_rays(model, batch, cfg.render, train=True)
+        out = render_rays(model, batch, cfg.render, train=True,
+                          request=SurfaceRequest(lobe_split=needs_lobe_split(cfg.loss)))
         return compute_losses(out, batch, cfg.loss, use_mask=False, background=True, **kw)
 
     cfg, model, rays, a = setup(24, 16)

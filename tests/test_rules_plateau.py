@@ -47,14 +47,14 @@ def test_plateau_clock_restarts_when_the_lobe_drops_and_when_its_fade_ends(drop)
         a.on_test_eval(wall, {"test_psnr": v, "wall_s": float(wall)})
     if drop:
         for step in (100, 200, 300):
-            a.after_step(step, fake_out(share=0.0), losses())
+            a.after_step(step, fake_out(share=0.0), losses(), check=True)
         assert not rs.specular
     for wall, v in seq[2:]:
         a.on_test_eval(wall, {"test_psnr": v, "wall_s": float(wall)})
     assert a.plateau.plateaued != drop
     if drop:
         assert a.plateau.best == 33.0
-        a.after_step(300 + a.rc.lobe_fade_steps, fake_out(share=0.0), losses())   # fade over
+        a.after_step(300 + a.rc.lobe_fade_steps, fake_out(share=0.0), losses(), check=True)   # fade over
         assert rs.diffuse_metal_weight == 0.0 and a.plateau.best == -math.inf
         for wall in range(80, 170, 10):       # flat from 80 s; t - t_best >= t / 2 from 160 s on
             a.on_test_eval(wall, {"test_psnr": 33.0 + 0.1 * (wall % 20 == 0), "wall_s": float(wall)})
@@ -86,7 +86,7 @@ def test_no_plateau_while_a_grid_sdf_is_still_adding_levels():
     and the plateau clock restarts when every level is active."""
     a, _ = make_adapt(iters_fixed=False, preset=fast, w_hessian=0.0)
     frac = fast().train.coarse_to_fine_frac
-    assert a.rc.plateau_min_progress == frac > 0
+    assert a.plateau.min_progress == frac > 0
     for step, v, t in [(k, 24.0, 30.0 * k) for k in range(1, 6)]:     # no gain at all, 30 s apart
         a.on_test_eval(step, {"test_psnr": v, "wall_s": t}, progress=0.9 * frac * step / 5)
     assert not a.plateau.plateaued and not named(a, "early_stop")
@@ -99,14 +99,14 @@ def test_no_plateau_while_a_grid_sdf_is_still_adding_levels():
     a.on_test_eval(10, {"test_psnr": 24.0, "wall_s": 360.0}, progress=0.6)
     assert a.plateau.plateaued                                       # 180 s >= 360 / 2, 4 evaluations
     # an MLP SDF (tiny, paper) has no schedule: the plateau counts from the first evaluation
-    assert make_adapt()[0].rc.plateau_min_progress == 0.0
+    assert make_adapt()[0].plateau.min_progress == 0.0
 
 
 def test_plateau_cooldown_anneals_the_learning_rate_then_stops():
     """After the plateau at 160 s the LR factor follows a cosine from its value then (0.4) to
     the floor over 10 % of 160 s = 16 s, never above the regular schedule, then the run stops."""
     a, rs = make_adapt(iters_fixed=False, plateau_cooldown_frac=0.1)
-    alpha = a.rc.lr_alpha
+    alpha = a.cfg.train.lr_alpha
     assert a.lr_factor(50.0, 0.7) == 0.7            # no plateau yet: schedule unchanged
     a.on_test_eval(1, {"test_psnr": 23.9, "wall_s": 80.0})
     for step, t in ((2, 100.0), (3, 120.0), (4, 160.0)):
@@ -139,7 +139,7 @@ def test_plateau_compares_the_mean_of_the_last_evaluations():
            (300.0, 24.36), (330.0, 24.70), (360.0, 24.95)]
     single, _ = make_adapt(iters_fixed=False, plateau_window=1)
     windowed, _ = make_adapt(iters_fixed=False, plateau_window=3)
-    assert fast().train.plateau_window == 3 and fast().train.plateau_cooldown_frac == 0.25
+    assert fast().rules.plateau_window == 3 and fast().rules.plateau_cooldown_frac == 0.25
     for k, (t, v) in enumerate(seq, 1):
         single.on_test_eval(k, {"test_psnr": v, "wall_s": t})
         windowed.on_test_eval(k, {"test_psnr": v, "wall_s": t})
@@ -190,7 +190,9 @@ def test_fit_stops_at_a_plateau_after_annealing_the_learning_rate(tmp_path):
     cfg = tiny()
     t = cfg.train
     t.iters, t.batch_rays, t.log_every, t.sync_every, t.checkpoint_every = 10**6, 32, 1, 0, 10**6
-    t.eval_every_s, t.plateau_patience, t.plateau_min_frac, t.plateau_cooldown_frac = 0.3, 2, 0.5, 2.0
+    t.eval_every_s = 0.3
+    r = cfg.rules
+    r.plateau_patience, r.plateau_min_frac, r.plateau_cooldown_frac = 2, 0.5, 2.0
     t.eval_stride = 4   # the evaluation itself is not under test: keep it cheap
     cfg.loss.w_hessian = 0.0   # nor the Hessian: six extra gradient evaluations per step
     # a budget far beyond what the rule needs, so "long before the budget" holds on a loaded
@@ -208,11 +210,11 @@ def test_fit_stops_at_a_plateau_after_annealing_the_learning_rate(tmp_path):
     tests = [r for r in recs if r.get("kind") == "test"]
     assert all(r["test_psnr"] == 20.0 for r in tests)   # what the hook wrote is what was logged
     t_plateau = max(r["wall_s"] for r in tests if r["step"] <= stop[0]["step"])
-    assert len([r for r in tests if r["step"] <= stop[0]["step"]]) >= 1 + t.plateau_patience
+    assert len([r for r in tests if r["step"] <= stop[0]["step"]]) >= 1 + r.plateau_patience
     cool = [r for r in recs if r.get("kind", "train") == "train" and r["step"] > stop[0]["step"]]
     assert len(cool) >= 3, "the cool-down must last several steps"
     lrs = [r["lr"] for r in cool]
     assert all(b <= a + 1e-12 for a, b in zip(lrs, lrs[1:])), "the learning rate only falls in the cool-down"
     assert lrs[0] > 2 * t.lr_alpha * t.lr            # it starts well above the floor ...
     assert lrs[-1] < 0.5 * lrs[0]                     # ... and ends near it
-    assert res.wall_s >= t_plateau * (1 + t.plateau_cooldown_frac) - 0.05
+    assert res.wall_s >= t_plateau * (1 + r.plateau_cooldown_frac) - 0.05

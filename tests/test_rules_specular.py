@@ -15,18 +15,18 @@ from rule_fixtures import fake_out, losses, make_adapt, named, records, resumed,
 def test_specular_dropped_after_patience_diffuse_checks():
     a, rs = make_adapt()
     assert rs.specular
-    assert a.wants_evidence(100) and not a.wants_evidence(150) and not a.wants_evidence(0)
-    a.after_step(50, fake_out(share=0.0), losses())   # before the warm-up (10% of 1000 steps)
+    assert a.request(100).lobe_split and not a.request(150).lobe_split and not a.request(0).lobe_split
+    a.after_step(50, fake_out(share=0.0), losses(), check=True)   # before the warm-up (10% of 1000 steps)
     assert a.specular.diffuse_streak == 0
     for k, step in enumerate((100, 200)):
-        a.after_step(step, fake_out(share=0.001, metallic=0.01), losses())
+        a.after_step(step, fake_out(share=0.001, metallic=0.01), losses(), check=True)
         assert rs.specular and a.specular.diffuse_streak == k + 1
-    a.after_step(300, fake_out(share=0.5, metallic=0.01), losses())   # a glossy check resets the streak
+    a.after_step(300, fake_out(share=0.5, metallic=0.01), losses(), check=True)   # a glossy check resets the streak
     assert rs.specular and a.specular.diffuse_streak == 0
-    a.after_step(400, fake_out(share=0.001, metallic=0.5), losses())  # metallic alone is "not diffuse"
+    a.after_step(400, fake_out(share=0.001, metallic=0.5), losses(), check=True)  # metallic alone is "not diffuse"
     assert a.specular.diffuse_streak == 0
     for step in (500, 600, 700):
-        a.after_step(step, fake_out(share=0.001, metallic=0.01), losses())
+        a.after_step(step, fake_out(share=0.001, metallic=0.01), losses(), check=True)
     assert not rs.specular and rs.diffuse_metal_weight == 1.0   # the drop: the same image, then the fade
     (d,) = named(a, "specular_lobe")
     assert d["value"] is False and d["step"] == 700 and "diffuse" in d["reason"]
@@ -36,11 +36,11 @@ def test_specular_dropped_after_patience_diffuse_checks():
 def test_specular_warmup_is_capped_for_long_nominal_runs():
     """A time-budgeted fast run has iters=20000 but does ~1-2k steps: 10% would never end."""
     a, rs = make_adapt(iters=20000)
-    a.after_step(a.rc.warmup_max_steps - 100, fake_out(share=0.0), losses())
+    a.after_step(a.rc.warmup_max_steps - 100, fake_out(share=0.0), losses(), check=True)
     assert a.specular.diffuse_streak == 0
     steps = [a.rc.warmup_max_steps + 100 * k for k in range(a.rc.patience)]
     for step in steps:
-        a.after_step(step, fake_out(share=0.0), losses())
+        a.after_step(step, fake_out(share=0.0), losses(), check=True)
     assert not rs.specular
     assert named(a, "specular_lobe")[0]["step"] == steps[-1] < 0.1 * 20000
 
@@ -48,29 +48,29 @@ def test_specular_warmup_is_capped_for_long_nominal_runs():
 def test_specular_needs_enough_surface_rays():
     a, rs = make_adapt()
     for step in (100, 200, 300, 400):
-        a.after_step(step, fake_out(share=0.0, opaque=False), losses())   # no ray with sum w > 0.5
+        a.after_step(step, fake_out(share=0.0, opaque=False), losses(), check=True)   # no ray with sum w > 0.5
     assert rs.specular and a.specular.diffuse_streak == 0
 
 
 def _dropped(**kw):
     a, rs = make_adapt(**kw)
     for step in (100, 200, 300):
-        a.after_step(step, fake_out(share=0.0), losses())
+        a.after_step(step, fake_out(share=0.0), losses(), check=True)
     assert not rs.specular
     return a, rs
 
 
 def test_specular_reenabled_when_share_would_be_large_for_patience_checks():
     a, rs = _dropped()
-    a.after_step(400, fake_out(share=0.03), losses())   # above spec_thr but below 2 spec_thr: no vote
+    a.after_step(400, fake_out(share=0.03), losses(), check=True)   # above spec_thr but below 2 spec_thr: no vote
     assert not rs.specular and a.specular.return_streak == 0
-    a.after_step(500, fake_out(share=0.2), losses())    # one vote ...
-    a.after_step(600, fake_out(share=0.01), losses())   # ... broken by a check that does not vote
+    a.after_step(500, fake_out(share=0.2), losses(), check=True)    # one vote ...
+    a.after_step(600, fake_out(share=0.01), losses(), check=True)   # ... broken by a check that does not vote
     assert not rs.specular and a.specular.return_streak == 0
     steps = [700 + 100 * k for k in range(a.rc.patience)]
     for k, step in enumerate(steps):
         assert not rs.specular
-        a.after_step(step, fake_out(share=0.2), losses())
+        a.after_step(step, fake_out(share=0.2), losses(), check=True)
         assert a.specular.return_streak == (0 if k == a.rc.patience - 1 else k + 1)
         if k < a.rc.patience - 1:
             assert a.step_stats()["lobe_return_votes"] == k + 1   # logged while the lobe is off
@@ -81,58 +81,58 @@ def test_specular_reenabled_when_share_would_be_large_for_patience_checks():
 
 def test_lobe_return_streak_and_the_switch_survive_a_checkpoint_resume():
     a, rs = _dropped()
-    a.after_step(400, fake_out(share=0.2), losses())
+    a.after_step(400, fake_out(share=0.2), losses(), check=True)
     b, rs_b = resumed(a, rs)
     assert not rs_b.specular and b.specular.return_streak == 1
     for step in range(500, 400 + 100 * a.rc.patience, 100):
-        b.after_step(step, fake_out(share=0.2), losses())
+        b.after_step(step, fake_out(share=0.2), losses(), check=True)
     assert rs_b.specular
 
 
 def test_albedo_flatness_prior_is_recorded_on_exactly_while_the_lobe_is_off():
     a, rs = _dropped()
     for k in range(a.rc.patience):
-        a.after_step(400 + 100 * k, fake_out(share=0.2), losses())
+        a.after_step(400 + 100 * k, fake_out(share=0.2), losses(), check=True)
     assert rs.specular and not named(a, "albedo_flatness_prior")   # tiny has no flatness prior
     b, _ = make_adapt(w_albedo_flat=3e-5)
     for step in (100, 200, 300):
-        b.after_step(step, fake_out(share=0.0), losses())
+        b.after_step(step, fake_out(share=0.0), losses(), check=True)
     back = 400 + 100 * (b.rc.patience - 1)
     for step in range(400, back + 1, 100):
-        b.after_step(step, fake_out(share=0.2), losses())
+        b.after_step(step, fake_out(share=0.2), losses(), check=True)
     assert [(d["value"], d["step"]) for d in named(b, "albedo_flatness_prior")] == [(True, 300), (False, back)]
 
 
 def test_specular_reenabled_by_highlight_residual_for_patience_checks():
     a, rs = _dropped()
     a.specular.vote_on_highlight(400, 2.0, rs.specular)   # below highlight_ratio = 3: no vote
-    a.after_step(400, fake_out(share=0.0), losses())
+    a.after_step(400, fake_out(share=0.0), losses(), check=True)
     assert not rs.specular and a.specular.return_streak == 0
     steps = [500 + 100 * k for k in range(a.rc.patience)]
     for step in steps:
         a.specular.vote_on_highlight(step, 7.5, rs.specular)
-        a.after_step(step, fake_out(share=0.0), losses())
+        a.after_step(step, fake_out(share=0.0), losses(), check=True)
     assert rs.specular
     d = named(a, "specular_lobe")[-1]
     assert d["value"] is True and d["step"] == steps[-1] and "brightest" in d["reason"]
     # a vote counts only at its own check: a later check without one breaks the streak
     b, rs_b = _dropped()
     b.specular.vote_on_highlight(400, 7.5, rs_b.specular)
-    b.after_step(400, fake_out(share=0.0), losses())
-    b.after_step(500, fake_out(share=0.0), losses())
+    b.after_step(400, fake_out(share=0.0), losses(), check=True)
+    b.after_step(500, fake_out(share=0.0), losses(), check=True)
     assert b.specular.return_streak == 0
     # while the lobe is on, a residual changes nothing
     n = len(a.decisions)
     a.specular.vote_on_highlight(900, 9.0, rs.specular)
-    a.after_step(900, fake_out(share=0.2), losses())
+    a.after_step(900, fake_out(share=0.2), losses(), check=True)
     assert len(a.decisions) == n and rs.specular
 
 
 def test_disabled_adaptivity_keeps_every_term():
     a, rs = make_adapt(enabled=False)
-    assert not a.wants_evidence(100)
+    assert not a.request(100).lobe_split
     for step in range(100, 1001, 100):
-        a.after_step(step, fake_out(share=0.0), losses(eik=0.0))
+        a.after_step(step, fake_out(share=0.0), losses(eik=0.0), check=True)
     a.specular.vote_on_highlight(500, 10.0, rs.specular)
     assert rs.specular and rs.w_hessian == 5e-4
     assert not named(a, "specular_lobe") and not named(a, "hessian_loss")
@@ -154,7 +154,7 @@ def test_kept_specular_lobe_is_reported_with_its_numbers():
     a, rs = make_adapt(iters=1000)
     a.specular.lobe_gain = 0.3
     for step in range(1, 301):
-        a.after_step(step, fake_out(share=0.1, metallic=0.5), losses())
+        a.after_step(step, fake_out(share=0.1, metallic=0.5), losses(), check=True)
     assert a.step_stats()["lobe_residual_gain"] == pytest.approx(0.3)
     rep = a.report(step=300, status="succeeded", nonfinite=0)
     (d,) = [x for x in rep["decisions"] if x["decision"] == "specular_lobe"]
@@ -162,7 +162,7 @@ def test_kept_specular_lobe_is_reported_with_its_numbers():
     assert rep["final_switches"]["specular"] is True and rep["run_state"]["specular"] is True
     b, _ = make_adapt(iters=1000)   # a dropped lobe gets no extra "kept" record
     for step in range(1, 501):
-        b.after_step(step, fake_out(share=0.0, metallic=0.0), losses())
+        b.after_step(step, fake_out(share=0.0, metallic=0.0), losses(), check=True)
     rep = b.report(step=500, status="succeeded", nonfinite=0)
     assert [x["value"] for x in rep["decisions"] if x["decision"] == "specular_lobe"] == [False]
 
@@ -173,7 +173,7 @@ def test_view_independent_radiance_drops_the_lobe_whatever_the_material_says():
     a, rs = make_adapt()
     a.specular.view_spread = 0.005
     for step in (100, 200, 300):
-        a.after_step(step, fake_out(share=0.12, metallic=0.6), losses())
+        a.after_step(step, fake_out(share=0.12, metallic=0.6), losses(), check=True)
     assert not rs.specular
     d = named(a, "specular_lobe")
     assert len(d) == 1 and d[0]["value"] is False and d[0]["step"] == 300
@@ -184,7 +184,7 @@ def test_view_dependent_radiance_keeps_the_lobe_even_if_the_material_looks_diffu
     a, rs = make_adapt()
     a.specular.view_spread = 0.05
     for step in range(100, 1100, 100):
-        a.after_step(step, fake_out(share=0.0, metallic=0.0), losses())
+        a.after_step(step, fake_out(share=0.0, metallic=0.0), losses(), check=True)
     assert rs.specular and a.specular.diffuse_streak == 0
     rep = a.report(step=1000, status="succeeded", nonfinite=0)
     kept = [d for d in rep["decisions"] if d["decision"] == "specular_lobe"]
@@ -195,15 +195,15 @@ def test_lobe_returns_when_the_radiance_becomes_view_dependent():
     a, rs = make_adapt()
     a.specular.view_spread = 0.01
     for step in (100, 200, 300):
-        a.after_step(step, fake_out(share=0.3, metallic=0.5), losses())
+        a.after_step(step, fake_out(share=0.3, metallic=0.5), losses(), check=True)
     assert not rs.specular
     a.specular.view_spread = 0.03   # between thr and 2 thr: hysteresis, no vote
-    a.after_step(400, fake_out(share=0.3, metallic=0.5), losses())
+    a.after_step(400, fake_out(share=0.3, metallic=0.5), losses(), check=True)
     assert not rs.specular and a.specular.return_streak == 0
     a.specular.view_spread = 0.06
     for k in range(a.rc.patience):
         assert not rs.specular
-        a.after_step(500 + 100 * k, fake_out(share=0.3, metallic=0.5), losses())
+        a.after_step(500 + 100 * k, fake_out(share=0.3, metallic=0.5), losses(), check=True)
     assert rs.specular
     assert [d["value"] for d in named(a, "specular_lobe")] == [False, True]
 
@@ -212,15 +212,15 @@ def test_highlight_residual_cannot_bring_the_lobe_back_while_the_radiance_is_fla
     a, rs = make_adapt()
     a.specular.view_spread = 0.01
     for step in (100, 200, 300):
-        a.after_step(step, fake_out(share=0.3, metallic=0.5), losses())
+        a.after_step(step, fake_out(share=0.3, metallic=0.5), losses(), check=True)
     for step in (400, 500, 600):
         a.specular.vote_on_highlight(step, 10.0, rs.specular)
-        a.after_step(step, fake_out(share=0.3, metallic=0.5), losses())
+        a.after_step(step, fake_out(share=0.3, metallic=0.5), losses(), check=True)
     assert not rs.specular and a.specular.return_streak == 0
     a.specular.view_spread = 0.03
     for step in (700, 800, 900):
         a.specular.vote_on_highlight(step, 10.0, rs.specular)
-        a.after_step(step, fake_out(share=0.3, metallic=0.5), losses())
+        a.after_step(step, fake_out(share=0.3, metallic=0.5), losses(), check=True)
     assert rs.specular
 
 
@@ -228,16 +228,16 @@ def test_dropped_lobe_fades_the_metallic_dimmer_out_linearly():
     a, rs = make_adapt()
     a.specular.view_spread = 0.01
     for step in (100, 200, 300):
-        a.after_step(step, fake_out(share=0.3, metallic=0.5), losses())
+        a.after_step(step, fake_out(share=0.3, metallic=0.5), losses(), check=True)
     assert not rs.specular and rs.diffuse_metal_weight == 1.0
     n = a.rc.lobe_fade_steps
-    a.after_step(300 + n // 4, fake_out(share=0.3, metallic=0.5), losses())
+    a.after_step(300 + n // 4, fake_out(share=0.3, metallic=0.5), losses(), check=True)
     assert rs.diffuse_metal_weight == pytest.approx(0.75)
     b, rs_b = resumed(a, rs)
     assert rs_b.diffuse_metal_weight == pytest.approx(0.75) and not rs_b.specular
-    b.after_step(300 + n // 2, fake_out(share=0.3, metallic=0.5), losses())
+    b.after_step(300 + n // 2, fake_out(share=0.3, metallic=0.5), losses(), check=True)
     assert rs_b.diffuse_metal_weight == pytest.approx(0.5)
-    b.after_step(300 + 2 * n, fake_out(share=0.3, metallic=0.5), losses())
+    b.after_step(300 + 2 * n, fake_out(share=0.3, metallic=0.5), losses(), check=True)
     assert rs_b.diffuse_metal_weight == 0.0
 
 

@@ -11,7 +11,6 @@ import torch
 from nepf_core.config import fast, paper, tiny
 from nepf_core.render.renderer import Shading
 from nepf_core.train.adaptivity import Adaptivity
-from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.run_state import RunState
 from rule_fixtures import fake_out, losses, named
 
@@ -46,11 +45,11 @@ def test_paper_takes_no_adaptive_decision():
     cfg = paper()
     assert cfg.train.adaptive is False and fast().train.adaptive and tiny().train.adaptive
     rs = RunState.from_config(cfg)
-    a = Adaptivity(RuleConfig.from_config(cfg, iters_fixed=False), rs)
+    a = Adaptivity(cfg, rs, iters_fixed=False)
     a.before_training(SimpleNamespace(has_masks=True, images=[torch.zeros(4, 4, 3).numpy()], masks=[torch.ones(4, 4).numpy()]))
-    assert not a.wants_evidence(100)
+    assert not a.request(100).lobe_split
     for step in range(1, 2001):
-        a.after_step(step, fake_out(share=0.0, metallic=0.0), losses(eik=0.0))
+        a.after_step(step, fake_out(share=0.0, metallic=0.0), losses(eik=0.0), check=True)
     for k in range(1, 20):
         a.on_test_eval(k, {"test_psnr": 20.0, "wall_s": 100.0 * k})
         assert a.lr_factor(100.0 * k, 0.5) == 0.5

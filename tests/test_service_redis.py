@@ -24,7 +24,8 @@ def stack(tmp_path_factory):
     data = tmp / "data"
     env = service_env(data, NEPF_BROKER_URL=f"redis://127.0.0.1:{port}/0", NEPF_DATABASE_URL=db_url,
                       NEPF_PIPELINE="service_fixtures:fake_pipeline", NEPF_FAKE_STEP_S="0.04",
-                      NEPF_LEASE_S="3", NEPF_HEARTBEAT_S="0.3", NEPF_RECONCILE_INTERVAL_S="1")
+                      NEPF_LEASE_S="3", NEPF_HEARTBEAT_S="0.3", NEPF_RECONCILE_INTERVAL_S="1",
+                      NEPF_RESEND_AFTER_S="10")
     api, base = start_api(env, tmp)
     h = {"Authorization": f"Bearer {create_token(env, 'carol')}"}
     st = {"tmp": tmp, "env": env, "base": base, "h": h, "data": data, "redis": redis_proc, "port": port,
@@ -86,8 +87,8 @@ def test_kill9_worker_midjob_resumes_and_completes_once(stack, worker):
 
 def test_redis_restart_while_queued(stack, worker):
     """A worker is busy with job A and job B waits in Redis; Redis restarts empty (no persistence).
-    A finishes once; the worker reconnects; the reconciler sees that no broker queue holds B's
-    message and sends it again; B runs."""
+    A finishes once; the worker reconnects; B, unclaimed NEPF_RESEND_AFTER_S after its send, is
+    sent again by the reconciler; B runs."""
     from service_fixtures import start_redis
 
     base, h = stack["base"], stack["h"]

@@ -22,12 +22,13 @@ import pytest
 import torch
 from torch import nn
 
+from nepf_core.fields.sdf_grid import GridSDFConfig
 from nepf_core.config import fast, tiny
-from nepf_core.losses import compute_losses
+from nepf_core.losses import compute_losses, total_loss
 from nepf_core.model import NePFModel
 from nepf_core.rays import RayBatch
-from nepf_core.render import renderer as renderer_mod
-from nepf_core.render.renderer import render_rays
+from nepf_core.render import weights as weights_mod
+from nepf_core.render.renderer import SurfaceRequest, render_rays
 
 # name -> (scale, offset): sdf_forced = scale * sdf_net + offset (keeps the graph to the weights)
 SDF_FORCE = {
@@ -68,7 +69,7 @@ def _cfg(mode: str):
     if mode == "paper":
         return tiny()
     cfg = fast()
-    cfg.model.sdf_grid = {"base_resolution": 8, "max_resolution": 32}
+    cfg.model.sdf_grid = GridSDFConfig(base_resolution=8, max_resolution=32)
     cfg.model.occupancy_resolution = 16
     cfg.model.radiance.width = cfg.model.photon.width = cfg.model.material.width = 32
     return cfg
@@ -127,8 +128,9 @@ def _assert_finite_output(out, R: int) -> None:
     for name in ("rgb_r", "rgb_vol", "rgb_surf", "weight_sum", "w_max", "depth", "eikonal", "hessian"):
         t = getattr(out, name)
         assert torch.isfinite(t).all(), f"{name} has non-finite values"
-    for name, t in out.surf.items():
-        assert torch.isfinite(t).all(), f"surf[{name!r}] has non-finite values"
+    for name, t in vars(out.surface).items():
+        if isinstance(t, torch.Tensor):
+            assert torch.isfinite(t).all(), f"surface.{name} has non-finite values"
     assert out.rgb_r.shape == out.rgb_vol.shape == out.rgb_surf.shape == (R, 3)
     ws = out.weight_sum.detach()
     assert (ws >= 0).all() and (ws <= 1.0 + WSUM_TOL).all(), f"weight sum out of [0, 1]: {ws.max()}"
@@ -154,10 +156,10 @@ def _assert_finite_grads(model) -> None:
 def test_render_rays_extreme_sdf_and_sharpness_is_finite(mode, force, inv_s):
     model, cfg = _model(mode, force, inv_s)
     rays, kinds = _rays()
-    out = render_rays(model, rays, cfg.render, train=True, cos_anneal=0.5, need_surface_extras=True)
+    out = render_rays(model, rays, cfg.render, train=True, cos_anneal=0.5, request=SurfaceRequest(lobe_split=True))
     _assert_finite_output(out, len(rays))
     # surface extras used by adaptivity are finite and bounded too
-    assert ((out.surf["specular"] >= 0) & (out.surf["specular"] <= 1 + 1e-6)).all()
+    assert ((out.lobe.share >= 0) & (out.lobe.share <= 1 + 1e-6)).all()
     ws = out.weight_sum.detach()
     if force == "outside_1e4":  # nothing to see anywhere: only the +1e-5 alpha floor remains
         assert (ws < 1e-2).all()
@@ -170,7 +172,7 @@ def test_render_rays_extreme_sdf_and_sharpness_is_finite(mode, force, inv_s):
     for k, v in losses.items():
         assert torch.isfinite(v).all(), f"{k} = {v}"
     model.zero_grad(set_to_none=True)
-    losses["loss"].backward()
+    total_loss(losses, cfg.loss).backward()
     _assert_finite_grads(model)
 
 
@@ -190,31 +192,31 @@ def test_render_rays_eval_path_is_finite(mode, force):
 def test_max_weight_selection_with_all_zero_weights(mode, monkeypatch):
     # Force every weight to exactly 0: the max-weight sample is the first one (index 0),
     # w_max = 0, every colour is the background (or 0), and the losses / gradients stay finite.
-    monkeypatch.setattr(renderer_mod, "weights_from_alpha", lambda a: a * 0.0)
+    monkeypatch.setattr(weights_mod, "weights_from_alpha", lambda a: a * 0.0)
     seen = []
-    real_max = renderer_mod.max_weight_index
+    real_max = weights_mod.max_weight_index
 
     def spy(w):
         idx, wm = real_max(w)
         seen.append(idx)
         return idx, wm
 
-    monkeypatch.setattr(renderer_mod, "max_weight_index", spy)
+    monkeypatch.setattr(weights_mod, "max_weight_index", spy)
     model, cfg = _model(mode, "plain", 1e3)
     cfg.render.perturb = False  # the background volume's samples then match the direct call below
     rays, _ = _rays()
-    out = render_rays(model, rays, cfg.render, train=True, need_surface_extras=True)
+    out = render_rays(model, rays, cfg.render, train=True, request=SurfaceRequest(lobe_split=True))
     _assert_finite_output(out, len(rays))
     assert (out.w_max == 0).all() and (out.weight_sum == 0).all()
     assert len(seen) == 1 and (seen[0] == 0).all()  # argmax of all-zero weights: the first sample
-    first = out.surf["x"]  # ... which lies on the ray
+    first = out.surface.x  # ... which lies on the ray
     t0 = ((first - rays.origins) * rays.directions).sum(-1)
     assert torch.allclose(rays.origins + t0[:, None] * rays.directions, first, atol=1e-4)
     bg = model.background(rays.origins, rays.directions)
     assert torch.allclose(out.rgb_r, bg, atol=1e-6) and torch.allclose(out.rgb_vol, bg, atol=1e-6)
     losses = compute_losses(out, rays, cfg.loss, use_mask=True)
     assert all(torch.isfinite(v).all() for v in losses.values())
-    losses["loss"].backward()
+    total_loss(losses, cfg.loss).backward()
     _assert_finite_grads(model)
 
 

@@ -20,9 +20,10 @@ import numpy as np
 import pytest
 import torch
 
+from nepf_core.fields.sdf_grid import GridSDFConfig
 from nepf_core.config import fast, tiny
 from nepf_core.data.detect import load_scene
-from nepf_core.data.synth import PRESETS, make_scene
+from nepf_core.data.synth import SCENE_VARIANTS, make_scene
 from nepf_core.evaluate import render_view
 from nepf_core.train import fit, load_model
 from nepf_core.meshing import world_mesh
@@ -32,11 +33,12 @@ from nepf_core.rays import PixelSampler
 ITERS = 16
 # make_scene's stress variants; "mirror_grazing" is a near-mirror metal (roughness 0.02,
 # metallic 1) lit from 3.6 deg above the horizon, "single_view" keeps masks (all else masked out)
-SCENES = {name: dict(PRESETS[name]) for name in
+SCENES = {name: dict(SCENE_VARIANTS[name]) for name in
           ("mirror_grazing", "dark", "clipped", "tiny_world", "huge_world", "close", "far", "single_view")}
 SCENES["mirror_grazing"]["roughness"] = 0.02
 
-_normalised_meshes: dict[str, np.ndarray] = {}
+WORLD_SCALES = ("tiny_world", "huge_world")
+"""Fitted together by :func:`test_scale_invariance_of_the_pipeline` (their meshes are compared)."""
 
 
 def _cfg():
@@ -76,8 +78,9 @@ def _assert_run_finite(run, scene) -> list[dict]:
     return train
 
 
-@pytest.mark.parametrize("name", list(SCENES))
-def test_tiny_fit_on_stiff_scene_stays_finite_and_meshes(name, tmp_path):
+def _fit_and_mesh(name: str, tmp_path) -> np.ndarray:
+    """Fit ``tiny`` on the stress scene ``name``, check the run (module docstring) and return the
+    mesh's vertices in normalised units (world minus the world offset, over the world scale)."""
     kw = {"n_views": 4, **SCENES[name]}
     info = make_scene(tmp_path / "scene", resolution=24, n_test=0, supersample=1, write_mesh=False, **kw)
     st = info["stats"]
@@ -114,14 +117,22 @@ def test_tiny_fit_on_stiff_scene_stays_finite_and_meshes(name, tmp_path):
     assert (extent / s).mean() > 1.0, f"surface receded: normalised extent {extent / s}"
     offset = np.asarray(kw.get("world_offset", (0.0, 0.0, 0.0)))
     assert np.linalg.norm(centre - offset) < s, (centre, offset, s)
-    if name in ("tiny_world", "huge_world"):
+    if "world_scale" in kw:
         assert s == pytest.approx(1.1 * kw["world_scale"], rel=1e-6)
-        _normalised_meshes[name] = (v - offset) / s
-        if len(_normalised_meshes) == 2:
-            # make_scene renders both in object units, so the two fits are the same problem:
-            # in normalised units their meshes must agree (scale invariance of the pipeline)
-            a, b = _normalised_meshes["tiny_world"], _normalised_meshes["huge_world"]
-            assert a.shape == b.shape and np.allclose(a, b, atol=1e-3)
+    return (v - offset) / s
+
+
+@pytest.mark.parametrize("name", [n for n in SCENES if n not in WORLD_SCALES])
+def test_tiny_fit_on_stiff_scene_stays_finite_and_meshes(name, tmp_path):
+    _fit_and_mesh(name, tmp_path)
+
+
+def test_scale_invariance_of_the_pipeline(tmp_path):
+    """World scales 1e-3 and 1e3: both fits stay finite and mesh, and since make_scene renders both
+    in object units they are the same problem, so in normalised units their meshes agree."""
+    a = _fit_and_mesh("tiny_world", tmp_path / "tiny")
+    b = _fit_and_mesh("huge_world", tmp_path / "huge")
+    assert a.shape == b.shape and np.allclose(a, b, atol=1e-3)
 
 
 @pytest.mark.parametrize("name", ["mirror_grazing", "dark", "clipped", "tiny_world"])
@@ -134,7 +145,7 @@ def test_fast_fit_on_stiff_scene_stays_finite(name, tmp_path):
     scene = load_scene(tmp_path / "scene" / "dtu")
     cfg = fast()
     assert cfg.render.surface_refine and cfg.render.alpha_mode == "sample"
-    cfg.model.sdf_grid = {"base_resolution": 8, "max_resolution": 32}
+    cfg.model.sdf_grid = GridSDFConfig(base_resolution=8, max_resolution=32)
     cfg.model.occupancy_resolution = 16
     cfg.train.iters, cfg.train.batch_rays, cfg.train.log_every = ITERS, 64, 4
     cfg.train.sync_every, cfg.train.eval_every_s, cfg.train.occupancy_every = 0, 0.0, 4

@@ -8,7 +8,7 @@ import pytest
 from pydantic import ValidationError
 
 from api.service import StartupError, check_secret
-from api.settings import Settings
+from jobstore.settings import Settings
 from jobstore.storage import artifact_rel, open_storage
 from jobstore.storage.bucket import parse_storage_url
 from jobstore.storage.local import LocalStorage
@@ -45,7 +45,7 @@ def test_storage_url():
 def test_default_backend_is_the_data_dir_and_needs_no_secret(tmp_path):
     s = Settings(data_dir=tmp_path)
     storage = open_storage(s)
-    assert isinstance(storage, LocalStorage) and not storage.remote
+    assert isinstance(storage, LocalStorage) and not storage.multi_machine
     check_secret(s, storage)                                  # embedded default: nothing required
     ws = storage.workspace("0" * 32)
     assert ws.run_dir == s.jobs_path / ("0" * 32) / "run" and ws.data_dir == s.jobs_path / ("0" * 32) / "dataset"
@@ -55,7 +55,7 @@ def test_object_store_needs_a_shared_secret(tmp_path, monkeypatch):
     monkeypatch.setenv("AWS_ENDPOINT_URL", "http://127.0.0.1:9")
     s = Settings(data_dir=tmp_path, storage_url="s3://bucket/prefix")
     storage = open_storage(s)
-    assert storage.remote
+    assert storage.multi_machine
     with pytest.raises(StartupError, match="NEPF_SECRET_KEY"):
         check_secret(s, storage)
     check_secret(Settings(data_dir=tmp_path, storage_url="s3://bucket/prefix", secret_key="k"), storage)

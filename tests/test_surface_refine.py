@@ -50,22 +50,22 @@ def test_refined_surface_point_lies_on_the_surface_whatever_the_sampling(inv_s):
         coarse = _surf(cfg, model, rays, refine=True, n_samples=24, n_importance=8)
         dense = _surf(cfg, model, rays, refine=True, n_samples=64, n_importance=32)
         plain = _surf(cfg, model, rays, refine=False, n_samples=24, n_importance=8)
-    off_ref = (coarse.surf["x"].norm(dim=-1) - R0).abs()
-    off_plain = (plain.surf["x"].norm(dim=-1) - R0).abs()
+    off_ref = (coarse.surface.x.norm(dim=-1) - R0).abs()
+    off_plain = (plain.surface.x.norm(dim=-1) - R0).abs()
     # the secant of |x| - r across one section is off by ~ spacing^2 / r; the max-weight sample
     # itself is up to one spacing in front of the surface
     assert float(off_ref.max()) < 2e-4
     assert float(off_plain.mean()) > 1e-3 and float(off_plain.mean()) > 20 * float(off_ref.mean())
     # independent of the sample placement, to the same precision
-    assert float((coarse.surf["x"] - dense.surf["x"]).norm(dim=-1).max()) < 2e-4
+    assert float((coarse.surface.x - dense.surface.x).norm(dim=-1).max()) < 2e-4
     # its normal is the sphere's, from its own finite differences
-    n_true = torch.nn.functional.normalize(coarse.surf["x"], dim=-1)
-    assert float((coarse.surf["normal"] * n_true).sum(-1).min()) > 0.999
+    n_true = torch.nn.functional.normalize(coarse.surface.x, dim=-1)
+    assert float((coarse.surface.normal * n_true).sum(-1).min()) > 0.999
     # the surface colour is the BSDF at that point: the same shading the refined quantities give
     from nepf_core import bsdf
-    s = coarse.surf
-    ref = bsdf.shade(s["normal"], s["light_dir"], -rays.directions, s["albedo"], s["roughness"][:, None],
-                     s["metallic"][:, None], s["intensity"][:, None], lambertian=cfg.render.lambertian,
+    s = coarse.surface
+    ref = bsdf.shade(s.normal, s.light_dir, -rays.directions, s.albedo, s.roughness[:, None],
+                     s.metallic[:, None], s.intensity[:, None], lambertian=cfg.render.lambertian,
                      specular=True, kind=cfg.render.bsdf_kind)
     assert torch.allclose(coarse.rgb_surf, ref, atol=1e-6)
     # the volume colours do not change: only L_surf moves
@@ -92,5 +92,5 @@ def test_rays_that_miss_keep_the_max_weight_sample():
         ref = _surf(cfg, model, rays, refine=True, n_samples=24, n_importance=8)
         plain = _surf(cfg, model, rays, refine=False, n_samples=24, n_importance=8)
     assert torch.isfinite(ref.rgb_surf).all()
-    assert torch.allclose(ref.surf["x"][0], plain.surf["x"][0])          # a miss: unchanged
-    assert abs(float(ref.surf["x"][1].norm()) - R0) < 2e-4                # a hit: on the sphere
+    assert torch.allclose(ref.surface.x[0], plain.surface.x[0])          # a miss: unchanged
+    assert abs(float(ref.surface.x[1].norm()) - R0) < 2e-4                # a hit: on the sphere

@@ -14,7 +14,7 @@ from PIL import Image
 from scipy.ndimage import binary_dilation
 
 from datagen import (gt_scene, project_opencv, read_ply_vertices, srgb_decode, synth_dir)
-from nepf_core.data.synth import PRESETS, add_make_scene_parser, main, make_scene
+from nepf_core.data.synth import SCENE_VARIANTS, add_make_scene_parser, main, make_scene
 
 
 def test_layout_matches_shared_scene_names():
@@ -127,7 +127,7 @@ def test_textured_albedo_is_the_two_checker_colours():
 
 
 def test_dark_variant_has_8bit_values_below_8_but_not_all_black():
-    d = synth_dir(shape="sphere", material="glossy", **PRESETS["dark"])
+    d = synth_dir(shape="sphere", material="glossy", **SCENE_VARIANTS["dark"])
     ims = np.stack([np.array(Image.open(p)) for p in sorted((d / "dtu/image").glob("*.png"))])
     fg = ims[np.load(d / "gt/arrays_train.npz")["alpha"] == 1.0].max(-1)
     assert (fg < 8).mean() >= 0.99 and fg.max() >= 7  # highlights may exceed 7
@@ -135,7 +135,7 @@ def test_dark_variant_has_8bit_values_below_8_but_not_all_black():
 
 
 def test_clipped_variant_clips_about_half_the_foreground():
-    d = synth_dir(shape="sphere", material="glossy", **PRESETS["clipped"])
+    d = synth_dir(shape="sphere", material="glossy", **SCENE_VARIANTS["clipped"])
     a = np.load(d / "gt/arrays_train.npz")
     fg = a["alpha"] == 1.0
     ims = np.stack([np.array(Image.open(p)) for p in sorted((d / "dtu/image").glob("*.png"))])
@@ -145,9 +145,9 @@ def test_clipped_variant_clips_about_half_the_foreground():
 
 @pytest.mark.parametrize("preset", ["far", "close"])
 def test_far_and_close_cameras_still_frame_the_object(preset):
-    d = synth_dir(shape="capsule", material="metal", **PRESETS[preset])
+    d = synth_dir(shape="capsule", material="metal", **SCENE_VARIANTS[preset])
     sc = gt_scene(d)
-    assert sc["cameras"]["distance_to_center"] == PRESETS[preset]["camera_distance"]
+    assert sc["cameras"]["distance_to_center"] == SCENE_VARIANTS[preset]["camera_distance"]
     a = np.load(d / "gt/arrays_train.npz")["alpha"]
     cover = a.reshape(len(a), -1).mean(1)
     assert cover.min() > 0.1  # object visible in every view
@@ -155,7 +155,7 @@ def test_far_and_close_cameras_still_frame_the_object(preset):
 
 
 def test_mirror_grazing_is_near_mirror_with_a_grazing_light():
-    d = synth_dir(**PRESETS["mirror_grazing"])
+    d = synth_dir(**SCENE_VARIANTS["mirror_grazing"])
     sc = gt_scene(d)
     assert sc["material"]["roughness"] == 0.02 and sc["material"]["metallic"] == 1.0
     lp = np.array(sc["lights"][0]["position_object"])
@@ -167,8 +167,8 @@ def test_mirror_grazing_is_near_mirror_with_a_grazing_light():
 
 
 def test_world_scale_only_changes_the_files():
-    small = synth_dir(shape="box", material="glossy", **PRESETS["tiny_world"])
-    big = synth_dir(shape="box", material="glossy", **PRESETS["huge_world"])
+    small = synth_dir(shape="box", material="glossy", **SCENE_VARIANTS["tiny_world"])
+    big = synth_dir(shape="box", material="glossy", **SCENE_VARIANTS["huge_world"])
     for d, s in ((small, 1e-3), (big, 1e3)):
         cams = np.load(d / "dtu/cameras.npz")
         assert cams["scale_mat_0"][0, 0] == pytest.approx(1.1 * s)

@@ -131,24 +131,24 @@ def test_without_the_lobe_metallic_no_longer_changes_the_shading():
                                shading=Shading(specular=specular, diffuse_metal_weight=fade["w"]))
     a, b = surf_rgb(0.1, False), surf_rgb(0.9, False)
     assert torch.equal(a.rgb_surf, b.rgb_surf) and float(a.rgb_surf.abs().max()) > 1e-3
-    s = a.surf
-    ref = bsdf_eval(s["normal"], s["light_dir"], -d, s["albedo"], s["roughness"][:, None],
-                    torch.zeros(64, 1), specular=False) * s["intensity"][:, None] * \
-        (s["normal"] * s["light_dir"]).sum(-1, keepdim=True).clamp_min(0)
+    s = a.surface
+    ref = bsdf_eval(s.normal, s.light_dir, -d, s.albedo, s.roughness[:, None],
+                    torch.zeros(64, 1), specular=False) * s.intensity[:, None] * \
+        (s.normal * s.light_dir).sum(-1, keepdim=True).clamp_min(0)
     assert torch.allclose(a.rgb_surf, ref, atol=1e-6)
     c, e = surf_rgb(0.1, True), surf_rgb(0.9, True)
     assert not torch.allclose(c.rgb_surf, e.rgb_surf)
-    albedo, metal = diffuse_only_material(s["albedo"], torch.full((64,), 0.7))
-    assert torch.equal(albedo, s["albedo"]) and torch.all(metal == 0) and metal.shape == (64,)
+    albedo, metal = diffuse_only_material(s.albedo, torch.full((64,), 0.7))
+    assert torch.equal(albedo, s.albedo) and torch.all(metal == 0) and metal.shape == (64,)
     # mid-fade: (1 - w m) f_d(c) + w f_s. Its diffuse part is the diffuse of ((1 - w m) c,
     # metallic 0); linear in w, so at w = 0.5 it is the mean of the lobe-on image (w = 1,
     # (1 - m) f_d + f_s) and the dielectric diffuse (w = 0, f_d)
     fade["w"] = 0.5
     h = surf_rgb(0.9, False)
-    c2, m2 = diffuse_only_material(h.surf["albedo"], torch.full((64,), 0.9), 0.5)
-    ref2 = bsdf_eval(h.surf["normal"], h.surf["light_dir"], -d, c2, h.surf["roughness"][:, None],
-                     m2[:, None], specular=False) * h.surf["intensity"][:, None] * \
-        (h.surf["normal"] * h.surf["light_dir"]).sum(-1, keepdim=True).clamp_min(0)
+    c2, m2 = diffuse_only_material(h.surface.albedo, torch.full((64,), 0.9), 0.5)
+    ref2 = bsdf_eval(h.surface.normal, h.surface.light_dir, -d, c2, h.surface.roughness[:, None],
+                     m2[:, None], specular=False) * h.surface.intensity[:, None] * \
+        (h.surface.normal * h.surface.light_dir).sum(-1, keepdim=True).clamp_min(0)
     lobe = e.rgb_surf - (1 - 0.9) * a.rgb_surf
     assert float(lobe.abs().max()) > 1e-3
     assert torch.allclose(h.rgb_surf, ref2 + 0.5 * lobe, atol=1e-6)
@@ -200,7 +200,7 @@ def test_the_lobe_rule_measures_the_spread_on_lit_pixels_only():
     x = _points(64)
     unlit = x[:, 0] < 0
     assert 8 <= int((~unlit).sum()) < 64
-    out = SimpleNamespace(weight_sum=torch.ones(64), surf={"x": x})
+    out = SimpleNamespace(weight_sum=torch.ones(64), surface=SimpleNamespace(x=x))
 
     def measure(rays):
         return lit_view_spread(model, out, rays, CAMS, view_points=256, radiance_fit_max=0.25)

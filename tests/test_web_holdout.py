@@ -18,30 +18,49 @@ import pytest
 
 from test_web_viewer import (assert_labelled, browser, chart_state, list_jobs, new_page,  # noqa: F401 - fixtures
                              shots)
-from web_fixtures import (STANDIN_EVAL_EVERY, STANDIN_STEPS, WEB, Backend, ensure_web_built, make_sphere_dtu,
-                          wait_for)
+from web_fixtures import (STANDIN_EVAL_EVERY, STANDIN_HOLD_ENV, STANDIN_HOLD_STEP, STANDIN_STEPS, WEB, Backend,
+                          ensure_web_built, make_sphere_dtu, release_standin, standin_holding, wait_for)
 
 NODE_SCRIPT = r"""
-import { jobOptions } from './views/upload.js';
-const cases = JSON.parse(await new Promise((res) => { let s = ''; process.stdin.on('data', (d) => s += d); process.stdin.on('end', () => res(s)); }));
-process.stdout.write(JSON.stringify(cases.map((c) => jobOptions(c))));
+import { jobOptions, limitsFromSchema } from './views/upload.js';
+const input = JSON.parse(await new Promise((res) => { let s = ''; process.stdin.on('data', (d) => s += d); process.stdin.on('end', () => res(s)); }));
+const out = input.schemas.map((schema) => input.cases.map((c) => jobOptions(c, limitsFromSchema(schema))));
+process.stdout.write(JSON.stringify({ out, limits: limitsFromSchema(input.schemas[1]) }));
 """
 
 
-def test_upload_form_checks_the_job_options():
+def form_checks(cases: list, schemas: list) -> dict:
+    """``jobOptions`` of the real upload module in Node, for each case under each schema."""
     node = shutil.which("node")
     assert node, "node is required to build and test the web viewer"
+    r = subprocess.run([node, "--input-type=module", "-e", NODE_SCRIPT],
+                       input=json.dumps({"cases": cases, "schemas": schemas}),
+                       cwd=WEB / "src", capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+def test_upload_form_checks_the_job_options():
+    """The form's limits come from the API's JobConfig schema (GET /schemas/job-config), here
+    made by the same function from the model: without a ceiling on max_image_side, and with one."""
+    from api.job_config import job_config_schema
+    from jobstore.settings import Settings
+
     cases = [
         {"holdoutEvery": "8", "maxImageSide": "400", "textureSize": "2048", "maxFaces": "1000", "upAxis": "-Y"},
         {},
         {"holdoutEvery": "0", "maxFaces": " 2000000 ", "upAxis": "auto"},
         {"holdoutEvery": "1", "maxImageSide": "4", "textureSize": "300", "maxFaces": "999", "upAxis": "up"},
         {"holdoutEvery": "2.5", "maxFaces": "2000001"},
+        {"maxImageSide": "1601"},
     ]
-    r = subprocess.run([node, "--input-type=module", "-e", NODE_SCRIPT], input=json.dumps(cases),
-                       cwd=WEB / "src", capture_output=True, text=True, timeout=60)
-    assert r.returncode == 0, r.stderr
-    out = json.loads(r.stdout)
+    got = form_checks(cases, [job_config_schema(Settings(max_image_side=0)),
+                              job_config_schema(Settings(max_image_side=1600))])
+    out, capped = got["out"]
+    assert got["limits"] == {"presets": ["fast", "paper", "tiny"], "defaultPreset": "fast", "maxNameLength": 200,
+                             "maxBudgetS": 2592000, "minImageSide": 8, "maxImageSide": 1600,
+                             "textureSizes": [256, 512, 1024, 2048], "maxFacesRange": [1000, 2000000],
+                             "upAxes": ["auto", "+x", "-x", "+y", "-y", "+z", "-z"]}
     assert out[0] == {"options": {"holdout_every": 8, "max_image_side": 400, "texture_size": 2048, "max_faces": 1000,
                                   "up_axis": "-y"}, "problems": []}
     assert out[1] == {"options": {}, "problems": []}
@@ -54,6 +73,11 @@ def test_upload_form_checks_the_job_options():
         ("Mesh faces", "must be an integer from 1000 to 2000000 (got 999)"),
         ("Up axis", "must be one of auto, +x, -x, +y, -y, +z, -z (got up)")]
     assert [p["file"] for p in out[4]["problems"]] == ["Held-out views", "Mesh faces"]
+    assert out[5] == {"options": {"max_image_side": 1601}, "problems": []}          # no ceiling
+    assert capped[:5] == [out[0], out[1], out[2], capped[3], out[4]]
+    assert capped[3]["problems"][1]["message"] == "must be an integer from 8 to 1600 pixels (got 4)"
+    assert capped[5]["problems"] == [{"code": "invalid_config", "file": "Working resolution", "view": None,
+                                      "message": "must be an integer from 8 to 1600 pixels (got 1601)"}]
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +85,7 @@ def standin_backend(tmp_path_factory):
     ensure_web_built()
     tmp = tmp_path_factory.mktemp("webholdout")
     be = Backend(tmp / "data", tmp / "serve.log",
-                 env_extra={"NEPF_PIPELINE": "web_fixtures:pipeline_held_out_standin"})
+                 env_extra={"NEPF_PIPELINE": "web_fixtures:pipeline_held_out_standin", STANDIN_HOLD_ENV: "1"})
     yield be
     be.stop()
 
@@ -113,13 +137,17 @@ def test_upload_with_held_out_views_fills_the_error_chart(browser, standin_backe
     page.locator("#meta-working-size").wait_for()
     assert page.locator("#meta-working-size").inner_text() == "16×16 px"
     assert page.locator("#meta-held-out").inner_text().startswith("4 (views 0, 4, 8")
+    # the stand-in holds at step STANDIN_HOLD_STEP (after its 2nd held-out record) until released,
+    # so the job is still training whenever the chart has filled, however slow the machine
     page.wait_for_function("() => Number(document.querySelector('#chart-error')?.dataset.points) >= 2",
                            timeout=60_000)
-    running = be.job(job_id)["status"]
+    wait_for(lambda: standin_holding(be.data_dir, job_id), 30, what=f"the stand-in's hold at step {STANDIN_HOLD_STEP}")
+    running = be.job(job_id)
     mid = chart_state(page, "error")
     page.screenshot(path=str(shots / "job-held-out-running.png"), full_page=True)
-    assert running == "running", "the chart should fill while the job trains"
+    assert running["status"] == "running", "the chart should fill while the job trains"
     assert mid["series"].get("test_psnr", 0) >= 2
+    release_standin(be.data_dir, job_id)
 
     be.wait_status(job_id, ("succeeded",), 120)
     with be.client() as c:

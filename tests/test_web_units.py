@@ -180,3 +180,102 @@ def test_viewer_reads_the_manifest_frame_as_the_export_writes_it():
     out = json.loads(r.stdout)
     assert out["up"] == "y" and out["none"] is True and out["legacyUp"] is None
     np.testing.assert_allclose(out["point"], np.asarray(frame["gltf_from_world"]) @ point)   # (1, 3, -2)
+
+
+HELPERS_SCRIPT = r"""
+import * as THREE from 'three';
+import { anglesOf, directionOf } from './viewer/frame.js';
+import { lightSliders } from './viewer/lighting.js';
+import { glyphLength, glyphCountFor, intensityRange, shuffledIndices } from './viewer/glyphs.js';
+import { bestViewDirection } from './viewer/framing.js';
+import { dragDirection, GIZMO_RADIUS } from './viewer/gizmo.js';
+import { environmentIntensity } from './viewer/environment.js';
+import { patchTouches, initialState } from './viewer3d.js';
+import { metaItems, statusNote } from './views/job.js';
+import { groupArtifacts } from './views/job_results.js';
+const V = (a) => new THREE.Vector3(...a);
+const out = {};
+// azimuth / elevation about each up axis, and back
+out.roundTrip = ['y', 'z', '-y'].map((up) => {
+  const d = directionOf(30, 40, up);
+  const { az, el } = anglesOf(d, up);
+  return [up, az, el, d.length()];
+});
+out.dirY = directionOf(0, 90, 'y').toArray();
+out.dirZ = directionOf(90, 0, 'z').toArray();   // +Z up: azimuth 90 is the y-like axis
+// a light 10 radii away on +x (asset radius 2 at the origin): onto the slider's range [1.2, 20]
+const state = { lightAz: 45, lightEl: 35, lightDist: 3, baseLightIntensity: 28 };
+out.far = lightSliders({ position: V([20, 0, 0]), intensity: 100 }, { center: V([0, 0, 0]), radius: 2, up: 'y', current: state });
+out.beyond = lightSliders({ position: V([0, 50, 0]), intensity: 100 }, { center: V([0, 0, 0]), radius: 2, up: 'y', current: state });
+out.directional = lightSliders({ direction: V([0, 0, 1]), atPoint: 2 }, { center: V([0, 0, 0]), radius: 2, up: 'y', current: state });
+out.nothing = lightSliders({}, { center: V([0, 0, 0]), radius: 2, up: 'y', current: state });
+out.glyph = [glyphLength(1, 4 * Math.PI / 0.01), glyphLength(1, 1), glyphLength(1, 1e6), glyphCountFor(100, 0.25), glyphCountFor(3, 0.01)];
+out.range = [intensityRange([3, NaN, -1, 7]), intensityRange([NaN])];
+const order = shuffledIndices(50);
+out.shuffle = [order.length, new Set(order).size, JSON.stringify(order) === JSON.stringify(shuffledIndices(50))];
+// a box 2 long in x, 0.6 high, 0.2 deep, up +y: seen from the side (a view direction nearly
+// perpendicular to x: its silhouette 2 x 0.6 against 0.2 x 0.6 end-on)
+const box = [];
+for (const x of [-1, 1]) for (const y of [-0.3, 0.3]) for (const z of [-0.1, 0.1]) box.push(V([x, y, z]));
+out.rodView = bestViewDirection(box, V([0, 1, 0]), V([0, 0, 1]), V([1, 0, 0])).toArray();
+// a ray from z=10 down the -z axis through the centre: the handle's near side (+z) or far side (-z)
+const ray = new THREE.Ray(V([0, 0, 10]), V([0, 0, -1]));
+out.drag = [dragDirection(ray, V([0, 0, 0]), GIZMO_RADIUS, false).toArray(), dragDirection(ray, V([0, 0, 0]), GIZMO_RADIUS, true).toArray(),
+  dragDirection(new THREE.Ray(V([5, 0, 10]), V([0, 0, -1])), V([0, 0, 0]), 1, false).toArray()];
+out.env = [environmentIntensity('dim', 0.8), environmentIntensity('room', 0.8)];
+out.touches = [patchTouches({ tint: '#fff' }), patchTouches({ density: 0.5, exposure: 2 })];
+out.state = initialState();
+out.meta = metaItems({ created: null, step: 5, total: 10, wall_s: null, raw: { dataset: { format: 'dtu', n_views: 16, width: 32, height: 32, working_width: 16, working_height: 16, held_out_views: 2 }, config: { holdout_every: 8 } } })
+  .map(([k, v, id]) => [k, v, id ?? null]);
+out.notes = [statusNote('cancelled') !== null, statusNote('queued'), statusNote('running')];
+out.groups = groupArtifacts([{ path: 'asset.glb', kind: 'glb' }, { path: 'previews/thumb.png', kind: 'preview' },
+  { path: 'textures/albedo.png', kind: 'texture' }, { path: 'mesh.ply', kind: 'mesh' }]).map(([g, a]) => [g, a.map((x) => x.path)]);
+process.stdout.write(JSON.stringify(out));
+"""
+
+
+def test_viewer_and_job_page_helpers():
+    """The pure helpers the 3D view and the job page are built from, on hand-worked values."""
+    node = shutil.which("node")
+    assert node, "node is required to build and test the web viewer"
+    assert (REPO / "web" / "node_modules" / "three").is_dir(), "run `cd web && npm ci` first"
+    r = subprocess.run([node, "--input-type=module", "-e", HELPERS_SCRIPT], cwd=SRC, capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    for up, az, el, norm in out["roundTrip"]:
+        assert abs(az - 30) < 1e-9 and abs(el - 40) < 1e-9 and abs(norm - 1) < 1e-12, up
+    np.testing.assert_allclose(out["dirY"], [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(out["dirZ"], [0, 1, 0], atol=1e-12)   # UP_AXES.z: ax = +x, ay = +y
+    # 20 / 2 = 10 radii: inside [1.2, 20], kept as it is, azimuth of +x about +y (ax = +z, ay = +x) is 90
+    far = out["far"]
+    assert far["lightDist"] == 10 and far["baseLightIntensity"] == 100 and far["lightIntensity"] == 1
+    assert abs(far["lightAz"] - 90) < 1e-9 and abs(far["lightEl"]) < 1e-9
+    # 50 / 2 = 25 radii: moved onto 20 radii, the intensity scaled by (20/25)^2 = 0.64: same irradiance
+    beyond = out["beyond"]
+    assert beyond["lightDist"] == 20 and abs(beyond["baseLightIntensity"] - 64) < 1e-9 and abs(beyond["lightEl"] - 90) < 1e-9
+    # a directional fit: I = atPoint * d^2 at the slider's distance, 2 * (3 * 2)^2 = 72; azimuth of +z is 0
+    d = out["directional"]
+    assert d["lightDist"] == 3 and abs(d["baseLightIntensity"] - 72) < 1e-9 and abs(d["lightAz"]) < 1e-9
+    assert out["nothing"] == {"lightAz": 45, "lightEl": 35, "lightDist": 3, "baseLightIntensity": 28, "lightIntensity": 1}
+    # spacing sqrt(4 pi / n): n = 4 pi / 0.01 gives 0.1, x 0.8 = 0.08; one glyph: capped at 0.15; 1e6: floor 0.025
+    g = out["glyph"]
+    assert abs(g[0] - 0.08) < 1e-12 and g[1] == 0.15 and g[2] == 0.025 and g[3] == 25 and g[4] == 1
+    assert out["range"] == [[-1, 7], [0, 1]]
+    assert out["shuffle"] == [50, 50, True]
+    # the 12 azimuths (30 degrees apart from 0.6 rad, 20 degrees up) give bounding-box areas from
+    # 0.44 (end-on, dir = (+-0.937, 0.342, -+0.072)) to 1.775 (dir = (0.531, 0.342, 0.776), the first of the largest)
+    np.testing.assert_allclose(out["rodView"], [0.5306, 0.3420, 0.7756], atol=1e-4)
+    np.testing.assert_allclose(out["drag"][0], [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(out["drag"][1], [0, 0, -1], atol=1e-12)
+    np.testing.assert_allclose(out["drag"][2], [1, 0, 0], atol=1e-12)   # a miss: the closest point, on the sphere
+    assert out["env"] == [0.2, 0.8]
+    assert out["touches"][0] == {"materials": True, "env": False, "light": False, "lightField": False}
+    assert out["touches"][1] == {"materials": False, "env": True, "light": False, "lightField": True}
+    assert out["state"]["up"] == "y" and out["state"]["channel"] == "pbr" and out["state"]["density"] == 0.25
+    assert ["Trains at", "16×16 px", "meta-working-size"] in out["meta"]
+    assert ["Held-out views", "2 (views 0, 8, 16, …), scored during training", "meta-held-out"] in out["meta"]
+    assert ["Step", "5 / 10", None] in out["meta"] and ["Dataset", "dtu, 16 views, 32×32", None] in out["meta"]
+    assert out["notes"] == [True, "Waiting for a worker.", None]
+    assert out["groups"] == [["Asset (GLB)", ["asset.glb"]], ["Material maps", ["textures/albedo.png"]],
+                             ["Metrics", []], ["Mesh", ["mesh.ply"]], ["Previews", ["previews/thumb.png"]]]

@@ -180,32 +180,48 @@ def test_load_pipeline_and_setting_format():
         Settings(pipeline="nepf_core.pipeline.run_pipeline")   # a dot where the colon goes
 
 def test_reconciler_requeues_orphans_only(store):
+    """Re-sent: a running job whose lease expired, a queued job unclaimed past NEPF_RESEND_AFTER_S
+    (doubled by each earlier re-send), a job never sent. Not: a live lease, a job sent recently, a
+    finished job. The broker is never inspected."""
     settings, Session = store
+    assert settings.resend_after_s == 120
     now = utcnow()
-    old = now - dt.timedelta(seconds=30)
+    old, older = now - dt.timedelta(seconds=30), now - dt.timedelta(seconds=200)
     orphan_running = new_job(settings, Session, status="running", lease_owner="dead",
-                             lease_expires=now - dt.timedelta(seconds=5), enqueued_at=old)
+                             lease_expires=now - dt.timedelta(seconds=5), enqueued_at=old, enqueue_count=1)
     live_running = new_job(settings, Session, status="running", lease_owner="alive",
-                           lease_expires=now + dt.timedelta(seconds=60), enqueued_at=old)
-    lost_queued = new_job(settings, Session, status="queued", enqueued_at=old)
-    waiting_queued = new_job(settings, Session, status="queued", enqueued_at=old)
-    fresh_queued = new_job(settings, Session, status="queued", enqueued_at=now)
+                           lease_expires=now + dt.timedelta(seconds=60), enqueued_at=old, enqueue_count=1)
+    lost_queued = new_job(settings, Session, status="queued", enqueued_at=older, enqueue_count=1)
+    waiting_queued = new_job(settings, Session, status="queued", enqueued_at=old, enqueue_count=1)
+    backed_off = new_job(settings, Session, status="queued", enqueued_at=older, enqueue_count=2)  # waits 240 s
+    fresh_queued = new_job(settings, Session, status="queued", enqueued_at=now, enqueue_count=1)
     never_sent = new_job(settings, Session, status="queued", enqueued_at=None, created_at=old)
-    done = new_job(settings, Session, status="succeeded", enqueued_at=old)
-
-    class Broker:
-        def waiting_job_ids(self):
-            return {waiting_queued}
+    done = new_job(settings, Session, status="succeeded", enqueued_at=old, enqueue_count=1)
 
     sent = []
-    got = reconcile_once(settings, Session, lambda jid, q: sent.append(jid), Broker())
+    got = reconcile_once(settings, Session, lambda jid, q: sent.append(jid))
     assert sorted(got) == sorted(sent) == sorted([orphan_running, lost_queued, never_sent])
     j = get(Session, orphan_running)
-    assert j.status == "queued" and j.lease_owner is None and j.stage == "requeued"
+    assert j.status == "queued" and j.lease_owner is None and j.stage == "requeued" and j.enqueue_count == 2
     assert get(Session, live_running).status == "running" and get(Session, done).status == "succeeded"
+    assert get(Session, lost_queued).enqueue_count == 2
     # a second pass right away sends nothing (the re-sends are reserved)
-    assert reconcile_once(settings, Session, lambda jid, q: sent.append(jid), Broker()) == []
-    assert fresh_queued not in sent
+    assert reconcile_once(settings, Session, lambda jid, q: sent.append(jid)) == []
+    assert not {waiting_queued, backed_off, fresh_queued} & set(sent)
+
+
+def test_reconciler_send_failure_is_not_counted_and_retried(store):
+    settings, Session = store
+    old = utcnow() - dt.timedelta(seconds=200)
+    lost = new_job(settings, Session, status="queued", enqueued_at=old, created_at=old, enqueue_count=1)
+
+    def down(jid, q):
+        raise ConnectionError("broker down")
+    assert reconcile_once(settings, Session, down) == []
+    j = get(Session, lost)
+    assert j.enqueue_count == 1 and j.enqueued_at is None          # not a send; due again at once
+    assert reconcile_once(settings, Session, lambda jid, q: None) == [lost]
+    assert get(Session, lost).enqueue_count == 2
 
 
 def test_lease_lost_mid_run_stops_without_result(store):

@@ -222,6 +222,8 @@ def pipeline_held_out_standin(request):
     ``request.holdout_every`` reached it and is > 0, with ``test_views`` the number held out
     (``ceil(n_views / K)``, ``n_views`` counted in the dataset's ``image/``). Train records
     carry a loss; no export."""
+    from nepf_core.holdout_preview import write_holdout_preview   # numpy + Pillow only
+
     run = Path(request.run_dir)
     every = int(request.holdout_every or 0)
     n_views = len(list(Path(request.data_dir, "image").glob("*.png")))
@@ -237,18 +239,50 @@ def pipeline_held_out_standin(request):
             wall = round(time.time() - t0, 3)
             f.write(json.dumps({"kind": "train", "step": step, "wall_s": wall, "loss": 1.0 / step}) + "\n")
             if held and (step % STANDIN_EVAL_EVERY == 0 or step == total):
+                # the real picture writer, on a render that approaches the truth as the steps go
+                truth = np.linspace(0.0, 1.0, 16 * 16 * 3).reshape(16, 16, 3)
+                preview = write_holdout_preview(run, truth * min(1.0, step / total), truth)
                 f.write(json.dumps({"kind": "test", "step": step, "wall_s": wall, "test_views": held,
                                     "test_psnr": 12.0 + step / 10, "test_psnr_full": 10.0 + step / 10,
-                                    "test_psnr_radiance": 13.0 + step / 10, "final": step == total}) + "\n")
+                                    "test_psnr_radiance": 13.0 + step / 10, "final": step == total,
+                                    "preview": preview}) + "\n")
             f.flush()
             request.callbacks.progress({"step": step, "total": total, "fraction": step / total, "stage": "training",
                                         "eta_s": (total - step) * STANDIN_STEP_S, "wall_s": wall})
+            if step == STANDIN_HOLD_STEP and os.environ.get(STANDIN_HOLD_ENV) == "1":
+                _hold_until_released(request, run)
     return {"status": status, "step": step, "total": total, "wall_s": time.time() - t0, "manifest": None,
             "split": {"holdout_every": every, "n_test": held, "n_train": n_views - held}}
 
 
 #: the stand-in's schedule: 150 steps of 0.1 s, a held-out evaluation every 10 steps
 STANDIN_STEPS, STANDIN_STEP_S, STANDIN_EVAL_EVERY = 150, 0.1, 10
+#: with ``WEB_TEST_STANDIN_HOLD=1`` in the server's environment, the stand-in holds after this step
+#: (its second held-out record) until :func:`release_standin`, so that a test sees the job training
+#: while its chart shows points, on a machine of any speed
+STANDIN_HOLD_STEP, STANDIN_HOLD_ENV = 2 * STANDIN_EVAL_EVERY, "WEB_TEST_STANDIN_HOLD"
+STANDIN_HOLDING, STANDIN_RELEASE, STANDIN_MAX_HOLD_S = "standin-holding", "standin-release", 120.0
+
+
+def _hold_until_released(request, run: Path) -> None:
+    """Say so in ``RUN/standin-holding``, then wait for ``RUN/standin-release`` (or a stop, or
+    STANDIN_MAX_HOLD_S)."""
+    (run / STANDIN_HOLDING).touch()
+    deadline = time.time() + STANDIN_MAX_HOLD_S
+    while not (run / STANDIN_RELEASE).exists() and time.time() < deadline:
+        if request.callbacks.stop_requested():
+            return
+        time.sleep(0.05)
+
+
+def standin_holding(data_dir: Path, job_id: str) -> bool:
+    """Whether a stand-in job (``pipeline_held_out_standin``) reached its hold."""
+    return (Path(data_dir) / "jobs" / job_id / "run" / STANDIN_HOLDING).exists()
+
+
+def release_standin(data_dir: Path, job_id: str) -> None:
+    """Let a held stand-in job train on."""
+    (Path(data_dir) / "jobs" / job_id / "run" / STANDIN_RELEASE).touch()
 
 
 class Backend:

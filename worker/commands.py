@@ -35,7 +35,7 @@ def worker_main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=args.loglevel.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if args.parent_pid is not None:
         exit_with_parent(args.parent_pid)
-    from api.settings import get_settings, reset_settings_cache
+    from jobstore.settings import get_settings, reset_settings_cache
     reset_settings_cache()
     settings = get_settings()
     if args.check:

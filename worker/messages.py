@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 from jobstore.storage import StorageUnavailable
 
 if TYPE_CHECKING:
-    from api.settings import Settings
+    from jobstore.settings import Settings
 
 
 def human_error(exc: BaseException) -> str:

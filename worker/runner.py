@@ -1,6 +1,7 @@
 """Run one job: claim it, call the pipeline (``NEPF_PIPELINE``), record the outcome. No Celery in here.
 
-Delivery semantics (see docs/SERVICE.md):
+Delivery semantics (see docs/SERVICE.md; each state change is one conditional UPDATE of
+:mod:`jobstore.state`):
 
 * **claim**: one conditional UPDATE moves the job to ``running`` with this worker's lease,
   only if it is queued/running, not cancelled, and nobody holds a live lease. A duplicate or
@@ -14,13 +15,15 @@ Delivery semantics (see docs/SERVICE.md):
   ``completions`` counts it, so a job can never be completed twice.
 * **resume**: the pipeline gets ``JobRequest(resume=True)`` and continues from
   ``RUN/checkpoints/latest.pt``.
+* **files**: the job's workspace (:mod:`jobstore.storage`) gives the dataset and run folders to
+  train in, and keeps each checkpoint and the results where the API and the next worker find
+  them; the runner never knows where that is.
 * **pipeline**: one fixed signature, ``pipeline(JobRequest) -> summary dict``
   (``nepf_core/pipeline.py``); the setting ``NEPF_PIPELINE`` names it.
 """
 
 from __future__ import annotations
 
-import datetime as dt
 import json
 import logging
 import os
@@ -30,11 +33,11 @@ import traceback
 from pathlib import Path
 from typing import Any, Callable, Optional
 
-from sqlalchemy import select, update
 from sqlalchemy.orm import sessionmaker
 
-from jobstore.models import Job, utcnow
-from api.settings import Settings
+from jobstore import state
+from jobstore.models import Job
+from jobstore.settings import Settings
 from jobstore.storage import Storage, open_storage
 from nepf_core.resume import checkpoint_step
 
@@ -91,58 +94,18 @@ class JobRunner:
         self._shutdown = shutdown or threading.Event()
         self._last_poll = 0.0
 
-    # ------------------------------------------------------------------ DB helpers
-    def _lease_until(self) -> dt.datetime:
-        return utcnow() + dt.timedelta(seconds=self.settings.lease_s)
-
+    # ------------------------------------------------------------------ job state (jobstore.state)
     def claim(self) -> str:
         """'claimed' | 'finished' | 'held' | 'cancelled' | 'missing' | 'gave_up'.
 
         A job with a checkpoint in its run folder is claimed as ``stage: "resuming"`` at the
         checkpoint's step: the steps trained after it died with the last worker and are trained
         again, so that is where the progress stands (and ``metrics.jsonl`` is cut back to it)."""
-        now = utcnow()
         self._resume_step = self.ws.checkpoint_step() or 0
-        start = {"stage": "resuming", "step": self._resume_step} if self._resume_step else {"stage": "starting"}
-        with self.Session() as s:
-            res = s.execute(
-                update(Job)
-                .where(Job.id == self.job_id, Job.status.in_(("queued", "running")),
-                       Job.cancel_requested == False,  # noqa: E712
-                       (Job.lease_owner.is_(None)) | (Job.lease_expires < now))
-                .values(status="running", lease_owner=self.worker_id, lease_expires=self._lease_until(),
-                        attempts=Job.attempts + 1, error=None, **start)
-            )
-            s.commit()
-            job = s.get(Job, self.job_id)
-            if job is None:
-                return "missing"
-            if res.rowcount != 1:
-                if job.status in ("succeeded", "failed", "cancelled"):
-                    return "finished"
-                if job.cancel_requested and (job.lease_owner is None or job.lease_expires < now):
-                    s.execute(update(Job).where(Job.id == self.job_id, Job.status.in_(("queued", "running")))
-                              .values(status="cancelled", finished_at=now, stage="cancelled",
-                                      lease_owner=None, lease_expires=None))
-                    s.commit()
-                    return "cancelled"
-                return "held"
-            log_entry = {"worker": self.worker_id, "claimed_at": now.isoformat() + "Z", "first_step": None}
-            values: dict[str, Any] = {"attempt_log": list(job.attempt_log or []) + [log_entry]}
-            self._total = job.total or None
-            if self._resume_step and self._total:
-                values["fraction"] = min(1.0, self._resume_step / self._total)
-            if job.started_at is None:
-                values["started_at"] = now
-            if job.attempts > self.settings.max_deliveries:
-                values.update(status="failed", finished_at=now, lease_owner=None, lease_expires=None,
-                              stage="failed", completions=Job.completions + 1,
-                              error=(f"the job was interrupted {job.attempts - 1} times (its worker crashed "
-                                     f"or was killed); giving up after NEPF_MAX_DELIVERIES="
-                                     f"{self.settings.max_deliveries}"))
-            s.execute(update(Job).where(Job.id == self.job_id, Job.lease_owner == self.worker_id).values(**values))
-            s.commit()
-            return "gave_up" if "finished_at" in values else "claimed"
+        got = state.claim(self.Session, self.job_id, self.worker_id, lease_s=self.settings.lease_s,
+                          max_deliveries=self.settings.max_deliveries, resume_step=self._resume_step)
+        self._total = got.total
+        return got.outcome
 
     def _heartbeat_once(self) -> None:
         with self._lock:
@@ -151,32 +114,20 @@ class JobRunner:
             first = self._first_step if not self._first_step_written else None
             notice, dirty = self._notice, self._notice_dirty
             self._notice_dirty = False
-        values: dict[str, Any] = {"lease_expires": self._lease_until()}
-        if dirty:
-            values["error"] = notice
+        values: dict[str, Any] = {"error": notice} if dirty else {}
         if prog is not None:
-            for k in ("step", "total", "fraction", "stage", "eta_s", "wall_s"):
-                if k in prog:
-                    values[k] = prog[k]
+            values.update({k: prog[k] for k in ("step", "total", "fraction", "stage", "eta_s", "wall_s") if k in prog})
         decisions = self._read_decisions()
         if decisions is not None:
             values["decisions"] = decisions
-        with self.Session() as s:
-            res = s.execute(update(Job).where(Job.id == self.job_id, Job.lease_owner == self.worker_id,
-                                              Job.status == "running").values(**values))
-            if res.rowcount != 1:
-                s.rollback()
-                self._lease_lost = True
-                return
-            if first is not None:
-                job = s.get(Job, self.job_id)
-                logs = list(job.attempt_log or [])
-                if logs and logs[-1].get("worker") == self.worker_id:
-                    logs[-1] = {**logs[-1], "first_step": first}
-                    s.execute(update(Job).where(Job.id == self.job_id).values(attempt_log=logs))
-                self._first_step_written = True
-            self._cancel = bool(s.execute(select(Job.cancel_requested).where(Job.id == self.job_id)).scalar())
-            s.commit()
+        beat = state.heartbeat(self.Session, self.job_id, self.worker_id, lease_s=self.settings.lease_s,
+                               values=values, first_step=first)
+        if not beat.held:
+            self._lease_lost = True
+            return
+        if first is not None:
+            self._first_step_written = True
+        self._cancel = beat.cancel_requested
 
     def _read_decisions(self) -> Optional[list]:
         path = self.run_dir / "report.json"
@@ -283,8 +234,6 @@ class JobRunner:
             status, error, result, interrupted = self._run_pipeline(cfg)
         except LeaseLost as exc:
             log.warning("%s; stopping without recording a result", exc)
-            self._stop_hb.set()
-            hb.join(timeout=10)
             self.ws.close()
             return "lease_lost"
         finally:
@@ -295,7 +244,7 @@ class JobRunner:
             self._heartbeat_once()   # last progress/decisions
         except Exception:  # noqa: BLE001
             pass
-        self.ws.close()
+        self.ws.close()   # the background uploads stop; a scratch copy is dropped
         if interrupted or (status == "cancelled" and self._shutdown.is_set() and not self._cancel):
             return self.requeue()
         return self.finish(status, error, result)
@@ -341,54 +290,41 @@ class JobRunner:
         return status, error, result, interrupted
 
     def requeue(self) -> str:
-        """Give the job back after a worker shutdown: ``queued`` again (stage ``interrupted``), lease
-        released, ``enqueued_at`` cleared so that the next reconcile pass (on the next worker's
-        start, or the API's) re-sends it, and the next worker resumes it from its checkpoint. The
-        claim is not counted against ``NEPF_MAX_DELIVERIES`` (a clean stop is not a crash); the
-        attempt stays in ``attempt_log``, marked ``interrupted``."""
-        with self.Session() as s:
-            job = s.get(Job, self.job_id)
-            logs = list(job.attempt_log or []) if job is not None else []
-            if logs and logs[-1].get("worker") == self.worker_id:
-                logs[-1] = {**logs[-1], "interrupted": "worker shutdown"}
-            res = s.execute(update(Job).where(Job.id == self.job_id, Job.lease_owner == self.worker_id,
-                                              Job.status == "running")
-                            .values(status="queued", stage="interrupted", lease_owner=None, lease_expires=None,
-                                    enqueued_at=None, attempts=Job.attempts - 1, attempt_log=logs))
-            s.commit()
-        if res.rowcount != 1:
+        """Give the job back after a worker shutdown (:func:`jobstore.state.requeue`): the next
+        worker resumes it from its checkpoint."""
+        if not state.requeue(self.Session, self.job_id, self.worker_id):
             log.warning("job %s: lease lost before the re-queue", self.job_id)
             return "lease_lost"
         log.warning("job %s re-queued: the worker is shutting down; it resumes from its checkpoint", self.job_id)
         return "requeued"
 
     def finish(self, status: str, error: Optional[str], result: Optional[dict]) -> str:
-        now = utcnow()
-        values: dict[str, Any] = dict(status=status, finished_at=now, error=error, lease_owner=None,
-                                      lease_expires=None, completions=Job.completions + 1,
-                                      stage=status)
-        if result:
-            values["result"] = _jsonable({k: v for k, v in result.items() if k != "report"})
-            rep = result.get("report")
-            if isinstance(rep, dict) and isinstance(rep.get("decisions"), list) and rep["decisions"]:
-                values["decisions"] = _jsonable(rep["decisions"])
-            for k in ("step", "total"):
-                if isinstance(result.get(k), int):
-                    values[k] = result[k]
-            if status == "succeeded":
-                values["fraction"] = 1.0
-                values["eta_s"] = 0.0
-            if isinstance(result.get("wall_s"), (int, float)):
-                values["wall_s"] = float(result["wall_s"])
-        with self.Session() as s:
-            res = s.execute(update(Job).where(Job.id == self.job_id, Job.lease_owner == self.worker_id,
-                                              Job.status == "running").values(**values))
-            s.commit()
-        if res.rowcount != 1:
+        if not state.finish(self.Session, self.job_id, self.worker_id, status, outcome_values(error, result, status)):
             log.warning("job %s: lease lost before completion; result not recorded", self.job_id)
             return "lease_lost"
         log.info("job %s %s", self.job_id, status)
         return status
+
+
+def outcome_values(error: Optional[str], result: Optional[dict], status: str) -> dict[str, Any]:
+    """The columns a finished job gets from its pipeline's summary: the result (less the report),
+    the decisions, the last step, total and wall time."""
+    values: dict[str, Any] = {"error": error}
+    if not result:
+        return values
+    values["result"] = _jsonable({k: v for k, v in result.items() if k != "report"})
+    rep = result.get("report")
+    if isinstance(rep, dict) and isinstance(rep.get("decisions"), list) and rep["decisions"]:
+        values["decisions"] = _jsonable(rep["decisions"])
+    for k in ("step", "total"):
+        if isinstance(result.get(k), int):
+            values[k] = result[k]
+    if status == "succeeded":
+        values["fraction"] = 1.0
+        values["eta_s"] = 0.0
+    if isinstance(result.get("wall_s"), (int, float)):
+        values["wall_s"] = float(result["wall_s"])
+    return values
 
 
 def _release_device_memory() -> None:

@@ -8,7 +8,7 @@ import threading
 
 from celery.signals import worker_ready, worker_shutdown, worker_shutting_down
 
-from api.settings import get_settings
+from jobstore.settings import get_settings
 from jobstore.engine import session_factory
 from jobstore.queue import TASK_NAME, enqueue, make_celery
 from jobstore.reconcile import reconcile_once

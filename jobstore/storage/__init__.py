@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, Iterator, Optional
 
-if TYPE_CHECKING:   # the settings object is passed in; the store never imports the API
-    from api.settings import Settings
+if TYPE_CHECKING:   # the settings object is passed in
+    from jobstore.settings import Settings
 
 __all__ = ["Storage", "Workspace", "ArtifactRef", "ObjectStream", "StorageUnavailable", "open_storage",
            "artifact_rel", "JOB_ID", "PRIVATE_DIRS"]
@@ -70,6 +70,8 @@ class Workspace:
 
     data_dir: Path
     run_dir: Path
+    #: the runner sets it: False once this worker lost the job's lease (it must store nothing more)
+    may_write: Callable[[], bool] = staticmethod(lambda: True)
 
     def checkpoint_step(self) -> Optional[int]:
         """The step of the job's last stored checkpoint (None: none, or unknown yet)."""
@@ -99,8 +101,12 @@ class Workspace:
 class Storage:
     """Job files for the API (dataset in, artifacts and metrics out) and workspaces for workers."""
 
-    #: True when the API keeps no job files on its own disk
-    remote: bool = False
+    #: True when every machine reaches the job files (API processes on several machines, workers
+    #: elsewhere): then nothing per-machine may hold shared state, such as the ticket signing key
+    multi_machine: bool = False
+
+    def setup(self) -> None:
+        """Create what the backend needs on this machine; the API calls it once at start."""
 
     def ping(self) -> None:
         """Raise when the store cannot be used (``/readyz``)."""

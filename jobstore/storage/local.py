@@ -47,10 +47,13 @@ class LocalWorkspace(Workspace):
 
 
 class LocalStorage(Storage):
-    remote = False
+    multi_machine = False
 
     def __init__(self, jobs_path: Path) -> None:
         self.jobs_path = Path(jobs_path)
+
+    def setup(self) -> None:
+        self.jobs_path.mkdir(parents=True, exist_ok=True)
 
     def put_dataset(self, job_id: str, root: Path) -> None:
         job_dir = self.jobs_path / job_id

@@ -32,7 +32,7 @@ from . import ArtifactRef, ObjectStream, Storage, Workspace, artifact_rel
 from .bucket import CHUNK, Bucket
 
 if TYPE_CHECKING:
-    from api.settings import Settings
+    from jobstore.settings import Settings
 
 
 def job_prefix(job_id: str) -> str:
@@ -97,7 +97,7 @@ def _range(value: Optional[str], size: int) -> Optional[tuple[int, int]]:
 
 
 class S3Storage(Storage):
-    remote = True
+    multi_machine = True
 
     def __init__(self, bucket: Bucket, settings: "Settings") -> None:
         self.bucket = bucket

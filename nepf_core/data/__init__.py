@@ -21,8 +21,8 @@ _LAZY = {
     "load_colmap": "nepf_core.data.colmap",
     "validate_dataset": "nepf_core.data.validate",
     "read_image": "nepf_core.data.images",
-    "srgb_to_linear": "nepf_core.data.images",
-    "linear_to_srgb": "nepf_core.data.images",
+    "srgb_to_linear": "nepf_core.color",
+    "linear_to_srgb": "nepf_core.color",
 }
 
 __all__ = ["DatasetError", "Scene", *_LAZY]

@@ -52,11 +52,12 @@ def _copy_image(src: Path, dst: Path, K: np.ndarray, coeffs: tuple | None) -> No
     if coeffs is None:
         shutil.copyfile(src, dst)
         return
-    from nepf_core.data.images import linear_to_srgb, read_image, srgb_to_linear, to_uint8
+    from nepf_core.color import linear_to_srgb, srgb_to_linear
+    from nepf_core.data.images import read_image, to_uint8
     from nepf_core.data.ingp import distort_image
 
-    rgb = srgb_to_linear(read_image(src)[..., :3])
-    Image.fromarray(to_uint8(linear_to_srgb(distort_image(rgb, K, coeffs)))).save(dst)
+    rgb = srgb_to_linear(np.asarray(read_image(src)[..., :3], dtype=np.float32))
+    Image.fromarray(to_uint8(linear_to_srgb(np.asarray(distort_image(rgb, K, coeffs), dtype=np.float32)))).save(dst)
 
 
 def _colmap_params(model: str, K: np.ndarray, params: tuple) -> tuple[list[float], tuple]:

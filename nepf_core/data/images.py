@@ -1,4 +1,4 @@
-"""Image files -> float arrays: decoding, sRGB transfer curves, box downscaling.
+"""Image files -> float arrays: decoding, box downscaling (the sRGB curves: :mod:`nepf_core.color`).
 
 (Per-view reading on the working grid is in ``views.py``; area resampling in ``resample.py``.)
 
@@ -7,7 +7,7 @@ Everything here is numpy + Pillow (torch-free). Every failure raises
 
 Conventions:
     * :func:`read_image` returns the *stored* values scaled to [0, 1] (no colour transform);
-      loaders then call :func:`srgb_to_linear` on the colour channels (never on alpha/masks).
+      loaders then call :func:`nepf_core.color.srgb_to_linear` (float32) on the colour channels (never on alpha/masks).
     * Downscaling is a box filter by an integer factor applied to *linear* values (the
       physically meaningful average); a remainder of ``H % f`` rows / ``W % f`` columns is
       cropped from the bottom / right, which leaves pinhole intrinsics exact under
@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, UnidentifiedImageError
 
+from nepf_core.color import srgb_to_linear
 from nepf_core.data.errors import DatasetError
 from nepf_core.data.paths import dataset_path, rel
 
@@ -37,25 +38,6 @@ UNSUPPORTED_IMAGE_EXTS = (".bmp", ".tif", ".tiff", ".exr", ".hdr", ".webp", ".gi
 MIN_SIDE = 8
 
 Image.MAX_IMAGE_PIXELS = 20000 * 20000  # large but finite: refuse decompression bombs
-
-
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    """sRGB EOTF (IEC 61966-2-1), elementwise on values in [0, 1].
-
-    ``lin = x / 12.92`` if ``x <= 0.04045`` else ``((x + 0.055) / 1.055) ** 2.4``.
-    Worked values: 0 -> 0, 1 -> 1, 0.5 -> 0.21404.
-    """
-    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
-    return np.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4).astype(np.float32)
-
-
-def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    """sRGB OETF, the inverse of :func:`srgb_to_linear`; input clipped to [0, 1].
-
-    ``s = 12.92 x`` if ``x <= 0.0031308`` else ``1.055 x ** (1/2.4) - 0.055``.
-    """
-    x = np.clip(np.asarray(x, dtype=np.float32), 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055).astype(np.float32)
 
 
 def to_uint8(x: np.ndarray) -> np.ndarray:
@@ -178,7 +160,7 @@ def srgb_u8_to_linear(x: np.ndarray) -> np.ndarray:
     """:func:`srgb_to_linear` of ``x / 255`` for uint8 ``x`` via a 256-entry table (fast)."""
     global _SRGB_LUT
     if _SRGB_LUT is None:
-        _SRGB_LUT = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)
+        _SRGB_LUT = srgb_to_linear(np.arange(256, dtype=np.float32) / 255.0)   # float32
     return _SRGB_LUT[x]
 
 

@@ -152,7 +152,7 @@ def find_support_plane(points: np.ndarray, camera_centres: np.ndarray,
     return region
 
 
-def decide_object_region(scene, cfg: RegionConfig | None = None, points: np.ndarray | None = None,
+def find_object_region(scene, cfg: RegionConfig | None = None, points: np.ndarray | None = None,
                          search_radius: float = 1.0) -> ObjectRegion:
     """Sparse points of ``scene`` (:func:`triangulate_scene`, or ``points [P, 3]`` when given) inside
     the ball of ``search_radius``, then :func:`find_support_plane` with its camera centres."""

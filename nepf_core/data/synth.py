@@ -48,7 +48,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from nepf_core.data.images import linear_to_srgb, to_uint8
+from nepf_core.color import linear_to_srgb
+from nepf_core.data.images import to_uint8
 from nepf_core.data.synth_render import Material, render_views
 from nepf_core.data.synth_shapes import MATERIALS, SHAPES
 
@@ -56,7 +57,7 @@ SCALE_MAT_RADIUS = 1.1
 ELEVATION_DEG = (-25.0, 65.0)
 
 #: Named stress variants (keyword overrides of :func:`make_scene`).
-PRESETS = {
+SCENE_VARIANTS = {
     "mirror_grazing": {"material": "mirror", "light_position": (4.0, -1.5, 0.25), "light_intensity": 60.0},
     "dark": {"exposure": "dark"},
     "clipped": {"exposure": "clipped"},
@@ -122,6 +123,11 @@ def _resolve_exposure(exposure, rgb: np.ndarray, alpha: np.ndarray) -> float:
     raise ValueError(f"exposure must be a number, 'dark' or 'clipped', got {exposure!r}")
 
 
+def _srgb8(linear: np.ndarray) -> np.ndarray:
+    """8-bit sRGB of linear values, encoded in float32 (what the PNGs hold)."""
+    return to_uint8(linear_to_srgb(np.asarray(linear, dtype=np.float32)))
+
+
 def _save_png(path: Path, arr: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     Image.fromarray(arr).save(path, compress_level=1)
@@ -163,10 +169,10 @@ def _write_blender(folder: Path, split: str, cams: list[dict], K: np.ndarray, w:
     for i, c in enumerate(cams):
         if masks:  # straight (un-premultiplied) colour + alpha
             straight = rgb_lin[i] / np.maximum(alpha[i], 1e-6)[..., None]
-            rgba = np.concatenate([to_uint8(linear_to_srgb(straight)), to_uint8(alpha[i])[..., None]], -1)
+            rgba = np.concatenate([_srgb8(straight), to_uint8(alpha[i])[..., None]], -1)
             _save_png(folder / split / f"r_{i}.png", rgba)
         else:
-            _save_png(folder / split / f"r_{i}.png", to_uint8(linear_to_srgb(rgb_lin[i])))
+            _save_png(folder / split / f"r_{i}.png", _srgb8(rgb_lin[i]))
         frames.append({"file_path": f"./{split}/r_{i}", "rotation": 0.0,
                        "transform_matrix": c["c2w_opengl_blender"].tolist()})
     meta = {"camera_angle_x": 2.0 * math.atan(0.5 * w / K[0, 0]), "fl_x": K[0, 0], "fl_y": K[1, 1],
@@ -188,6 +194,72 @@ def _write_mesh(gt: Path, shape: str, s: float, off: np.ndarray, res: int = 128)
     trimesh.Trimesh(v * s + off, faces[:, ::-1], process=False).export(gt / "mesh.ply")
     trimesh.Trimesh(v / SCALE_MAT_RADIUS, faces[:, ::-1], process=False).export(gt / "mesh_normalized.ply")
     return len(v)
+
+
+def _render_one_thread(shape, mat, K, c2w: list, w: int, h: int, supersample: int, light_position,
+                       light_intensity: float, ambient: float) -> dict:
+    """:func:`render_views` of every camera ``c2w`` with one torch thread (small tensors: one thread
+    is faster and immune to oversubscription)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return render_views(shape, mat, np.stack([K] * len(c2w)), np.stack(c2w), w, h, supersample,
+                            light_position, light_intensity, ambient)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _write_split(out: Path, folder: Path, split: str, idx: np.ndarray, maps: dict, cams: list,
+                 scale_mat: np.ndarray, K: np.ndarray, w: int, h: int, s: float, masks: bool) -> None:
+    """The views ``idx`` of ``split`` as DTU (``folder``), Blender and the ground-truth arrays."""
+    _write_dtu(folder, cams, scale_mat, _srgb8(maps["rgb"][idx]), maps["alpha"][idx], masks)
+    _write_blender(out / "blender", split, cams, K, w, h, maps["rgb"][idx], maps["alpha"][idx], masks)
+    np.savez_compressed(out / "gt" / f"arrays_{split}.npz", albedo=maps["albedo"][idx],
+                        roughness=maps["roughness"][idx], metallic=maps["metallic"][idx],
+                        alpha=maps["alpha"][idx], normal_world=maps["normal"][idx],
+                        rgb_linear=maps["rgb"][idx], depth_z=maps["depth_z"][idx] * np.float32(s))
+
+
+def _write_lights(gt: Path, light_position, light_intensity: float, ambient: float, exp: float, s: float,
+                  off: np.ndarray) -> dict:
+    """Write ``gt/lights.json`` (the light in world, normalised and object units, exposure
+    included: ``I_world = I exp s^2``); returns the light's record."""
+    lp_world = s * np.asarray(light_position, float) + off
+    i_world = float(light_intensity) * exp * s * s
+    light = {"type": "point", "position_world": lp_world.tolist(), "intensity_rgb": [i_world] * 3,
+             "position_normalized": ((lp_world - off) / (SCALE_MAT_RADIUS * s)).tolist(),
+             "intensity_rgb_normalized": [i_world / (SCALE_MAT_RADIUS * s) ** 2] * 3,
+             "position_object": list(map(float, light_position)),
+             "intensity_object_before_exposure": float(light_intensity)}
+    lights = {"units": "radiant intensity, linear RGB image units (pixel value = radiance, exposure "
+                       "included); irradiance E = I max(cos, 0) / d^2; 'normalized' values are for the "
+                       "DTU unit-sphere space (positions through inv(scale_mat), intensity / (1.1 s)^2)",
+              "lights": [light], "ambient": ambient * exp}
+    (gt / "lights.json").write_text(json.dumps(lights, indent=1))
+    return light
+
+
+def _camera_record(cams: dict, scale_mat: np.ndarray, K: np.ndarray, w: int, h: int, distance: float) -> dict:
+    """``scene.json["cameras"]``: the shared intrinsics and every split's world matrices."""
+    def split_json(split):
+        return [{"index": i, "width": w, "height": h, **{k: v.tolist() for k, v in c.items()},
+                 "scale_mat": scale_mat.tolist(), "camera_angle_x": 2.0 * math.atan(0.5 * w / K[0, 0])}
+                for i, c in enumerate(cams[split])]
+    return {"distance_to_center": distance, "fov_x_deg": math.degrees(2.0 * math.atan(0.5 * w / K[0, 0])),
+            "width": w, "height": h, "train": split_json("train"), "test": split_json("test")}
+
+
+def _image_stats(maps: dict) -> dict:
+    """``scene.json["stats"]``: the largest linear value, the share of foreground pixels that clip,
+    and the 8-bit maximum and foreground median (the ``dark`` / ``clipped`` variants' checks)."""
+    linear = maps["rgb"][maps["alpha"] > 0.99]
+    fg8 = _srgb8(linear) if linear.size else np.zeros((0, 3), np.uint8)
+    return {"linear_max": float(maps["rgb"].max()),
+            "frac_fg_pixels_clipped": float((linear.max(-1) >= 1.0).mean()) if linear.size else 0.0,
+            "png_max": int(_srgb8(maps["rgb"]).max()),
+            "png_median_fg": float(np.median(fg8.max(-1))) if fg8.size else 0.0}
 
 
 def make_scene(out_dir, *, shape: str = "sphere", material: str = "diffuse", albedo=None,
@@ -235,16 +307,8 @@ def make_scene(out_dir, *, shape: str = "sphere", material: str = "diffuse", alb
     pos = {"train": spiral_positions(n_views, camera_distance, phase),
            "test": spiral_positions(n_test, camera_distance, phase + 0.5) if n_test else np.zeros((0, 3))}
     c2w_obj = {k: [look_at(p, np.zeros(3)) for p in v] for k, v in pos.items()}
-    allc = c2w_obj["train"] + c2w_obj["test"]
-    import torch
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)  # small tensors: one thread is faster and immune to oversubscription
-    try:
-        maps = render_views(shape, mat, np.stack([K] * len(allc)), np.stack(allc), w, h, supersample,
-                            light_position, light_intensity, ambient)
-    finally:
-        torch.set_num_threads(threads)
+    maps = _render_one_thread(shape, mat, K, c2w_obj["train"] + c2w_obj["test"], w, h, supersample,
+                              light_position, light_intensity, ambient)
     exp = _resolve_exposure(exposure, maps["rgb"], maps["alpha"])
     maps["rgb"] = maps["rgb"] * np.float32(exp)
     scale_mat = np.eye(4)
@@ -255,38 +319,11 @@ def make_scene(out_dir, *, shape: str = "sphere", material: str = "diffuse", alb
     cams = {k: [_world_mats(K, c, s, off) for c in v] for k, v in c2w_obj.items()}
     for split, folder in (("train", out / "dtu"), ("test", out / "gt" / "dtu_test")):
         if len(split_idx[split]):
-            idx = split_idx[split]
-            rgb8 = to_uint8(linear_to_srgb(maps["rgb"][idx]))
-            _write_dtu(folder, cams[split], scale_mat, rgb8, maps["alpha"][idx], masks)
-            _write_blender(out / "blender", split, cams[split], K, w, h, maps["rgb"][idx],
-                           maps["alpha"][idx], masks)
-            np.savez_compressed(out / "gt" / f"arrays_{split}.npz", albedo=maps["albedo"][idx],
-                                roughness=maps["roughness"][idx], metallic=maps["metallic"][idx],
-                                alpha=maps["alpha"][idx], normal_world=maps["normal"][idx],
-                                rgb_linear=maps["rgb"][idx], depth_z=maps["depth_z"][idx] * np.float32(s))
+            _write_split(out, folder, split, split_idx[split], maps, cams[split], scale_mat, K, w, h, s, masks)
     gt = out / "gt"
     gt.mkdir(parents=True, exist_ok=True)
     n_vertices = _write_mesh(gt, shape, s, off) if write_mesh else 0
-    lp_world = s * np.asarray(light_position, float) + off
-    i_world = float(light_intensity) * exp * s * s
-    light = {"type": "point", "position_world": lp_world.tolist(), "intensity_rgb": [i_world] * 3,
-             "position_normalized": ((lp_world - off) / (SCALE_MAT_RADIUS * s)).tolist(),
-             "intensity_rgb_normalized": [i_world / (SCALE_MAT_RADIUS * s) ** 2] * 3,
-             "position_object": list(map(float, light_position)),
-             "intensity_object_before_exposure": float(light_intensity)}
-    lights = {"units": "radiant intensity, linear RGB image units (pixel value = radiance, exposure "
-                       "included); irradiance E = I max(cos, 0) / d^2; 'normalized' values are for the "
-                       "DTU unit-sphere space (positions through inv(scale_mat), intensity / (1.1 s)^2)",
-              "lights": [light], "ambient": ambient * exp}
-    (gt / "lights.json").write_text(json.dumps(lights, indent=1))
-    linear = maps["rgb"][maps["alpha"] > 0.99]
-    fg8 = to_uint8(linear_to_srgb(linear)) if linear.size else np.zeros((0, 3), np.uint8)
-
-    def cam_json(split):
-        return [{"index": i, "width": w, "height": h, **{k: v.tolist() for k, v in c.items()},
-                 "scale_mat": scale_mat.tolist(), "camera_angle_x": 2.0 * math.atan(0.5 * w / K[0, 0])}
-                for i, c in enumerate(cams[split])]
-
+    light = _write_lights(gt, light_position, light_intensity, ambient, exp, s, off)
     scene = {
         "scene": name or out.name, "note": "nepf synthetic scene (analytic SDF, nepf_core.bsdf)",
         "object": {"shape": shape, "center_world": off.tolist(), "bounding_radius_world": s,
@@ -296,17 +333,12 @@ def make_scene(out_dir, *, shape: str = "sphere", material: str = "diffuse", alb
         "world": {"up": "+Z", "world_scale": s, "world_offset": off.tolist(),
                   "units": "object bounding radius = world_scale", "background": "black, alpha 0"},
         "scale_mat": scale_mat.tolist(),
-        "cameras": {"distance_to_center": camera_distance * s,
-                    "fov_x_deg": math.degrees(2.0 * math.atan(0.5 * w / K[0, 0])), "width": w, "height": h,
-                    "train": cam_json("train"), "test": cam_json("test")},
+        "cameras": _camera_record(cams, scale_mat, K, w, h, camera_distance * s),
         "render": {"renderer": "nepf synth sphere tracer (direct light, hard shadows)",
                    "supersample": supersample, "exposure": exp, "exposure_mode": exposure,
                    "ambient": ambient, "seed": seed,
                    "png_encoding": "sRGB OETF, 8 bit, values clipped to [0,1]"},
-        "stats": {"linear_max": float(maps["rgb"].max()),
-                  "frac_fg_pixels_clipped": float((linear.max(-1) >= 1.0).mean()) if linear.size else 0.0,
-                  "png_max": int(to_uint8(linear_to_srgb(maps["rgb"])).max()),
-                  "png_median_fg": float(np.median(fg8.max(-1))) if fg8.size else 0.0},
+        "stats": _image_stats(maps),
         "timing_s": {"total": time.time() - t_start},
     }
     (gt / "scene.json").write_text(json.dumps(scene, indent=1))
@@ -330,7 +362,7 @@ def _exposure(v: str):
 
 def _add_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("out", help="output folder")
-    p.add_argument("--preset", action="append", default=[], choices=sorted(PRESETS),
+    p.add_argument("--preset", action="append", default=[], choices=sorted(SCENE_VARIANTS),
                    help="stress variant (repeatable); explicit options override it")
     p.add_argument("--shape", choices=sorted(SHAPES))
     p.add_argument("--material", choices=sorted(MATERIALS))
@@ -359,7 +391,7 @@ def run_make_scene(args: argparse.Namespace) -> int:
     """Run ``make-scene`` from parsed arguments; prints a one-line summary, returns 0."""
     kw = {}
     for pr in args.preset:
-        kw.update(PRESETS[pr])
+        kw.update(SCENE_VARIANTS[pr])
     skip = {"out", "preset", "func", "command"}
     kw.update({k: v for k, v in vars(args).items() if k not in skip and v is not None})
     info = make_scene(args.out, **kw)

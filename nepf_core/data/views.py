@@ -16,8 +16,9 @@ from typing import Callable, Iterator
 import numpy as np
 
 from nepf_core.data.errors import DatasetError
+from nepf_core.color import srgb_to_linear
 from nepf_core.data.images import (box_downscale, check_min_size, decode_image, mask_from_array,
-                                   rgb_alpha, srgb_to_linear, srgb_u8_to_linear)
+                                   rgb_alpha, srgb_u8_to_linear)
 from nepf_core.data.resample import area_resize, grid_scale
 
 
@@ -97,7 +98,7 @@ def read_view(s: ViewSpec, i: int, *, downscale: int = 1, max_side: int | None =
         rgb = srgb_u8_to_linear(rgb)
         alpha = None if alpha is None else alpha.astype(np.float32) / 255.0
     else:
-        rgb = srgb_to_linear(rgb)
+        rgb = srgb_to_linear(np.asarray(rgb, dtype=np.float32))
     composite = alpha_mask and alpha is not None
     if composite:   # onto black at full size, so the resampling averages the composited image
         rgb = rgb * alpha[..., None]

@@ -94,6 +94,89 @@ def _write_bytes(path: Path, data: bytes) -> Path:
     return path
 
 
+def _write_glb(out_dir: Path, baked, uvm, vw: np.ndarray, nw: np.ndarray, m: np.ndarray, frame: UpFrame,
+               texture_size: int) -> np.ndarray:
+    """``textures/*.png``, ``asset.glb`` (world mesh rotated into the GLB's +Y-up frame by
+    ``frame.rotation``) and ``frame.json``; returns the UV faces in the world's winding (flipped
+    under a reflection ``det M < 0``; the rotation, ``det = +1``, keeps it)."""
+    rot = frame.rotation
+    base_png, orm_png = _png_bytes(baked.base_color), _png_bytes(baked.orm)
+    _write_bytes(out_dir / "textures" / "base_color.png", base_png)
+    _write_bytes(out_dir / "textures" / "orm.png", orm_png)
+    faces_uv = uvm.faces if np.linalg.det(m[:3, :3]) > 0 else uvm.faces[:, ::-1]
+    write_glb(out_dir / "asset.glb", vw[uvm.vmapping] @ rot.T, nw[uvm.vmapping] @ rot.T, uvm.uv, faces_uv,
+              base_png, orm_png,
+              extras={"up": [0.0, 1.0, 0.0], "world_up": frame.world_up, "up_source": frame.source,
+                      "gltf_from_world": rot.tolist(), "texture_size": int(texture_size),
+                      "faces": int(len(uvm.faces)), "world_from_norm": m.tolist()})
+    _write_bytes(out_dir / "frame.json", json.dumps(frame.to_json(), indent=2).encode())
+    return faces_uv
+
+
+class _StageTimer:
+    """Wall seconds of each export stage: :meth:`lap` books the time since the previous lap."""
+
+    def __init__(self) -> None:
+        self.timings: dict[str, float] = {}
+        self.t = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        t = time.perf_counter()
+        self.timings[name], self.t = t - self.t, t
+
+
+def _write_mesh(query, m: np.ndarray, out_dir: Path, resolution: int, bbox, max_faces: int, chunk: int, device,
+                log, timer: _StageTimer):
+    """Marching cubes of the SDF, decimation to ``max_faces``, vertex normals from the field, and
+    ``mesh.ply`` in world coordinates (winding flipped under a reflection). Returns ``(mesh
+    (normalised frame), normals [V, 3], world vertices [V, 3], world normals [V, 3])``."""
+    mesh = extract_mesh(query.sdf, resolution, bbox, chunk=max(chunk, 262144), device=device)
+    n_mc = len(mesh.faces)
+    timer.lap("marching_cubes")
+    mesh = decimate_mesh(mesh, max_faces)
+    timer.lap("decimate")
+    log(f"export: marching cubes {n_mc} faces -> {len(mesh.faces)} after decimation (budget {max_faces})")
+    vn = vertex_normals_from_field(query.normal, np.asarray(mesh.vertices, np.float32), chunk=chunk,
+                                   device=device, fallback=np.asarray(mesh.vertex_normals))
+    timer.lap("normals")
+    vw, nw = mesh_to_world(mesh.vertices, m, vn)
+    import trimesh  # local: keeps the module import light for the CLI
+
+    ply = trimesh.Trimesh(vertices=vw, faces=mesh.faces, vertex_normals=nw, process=False)
+    if np.linalg.det(m[:3, :3]) < 0:  # a reflection flips the winding
+        ply.invert()
+    _write_bytes(out_dir / "mesh.ply", ply.export(file_type="ply", vertex_normal=True))
+    timer.lap("ply")
+    return mesh, vn, vw, nw
+
+
+def _write_lights(query, mesh, m: np.ndarray, out_dir: Path, rot: np.ndarray, light_samples: int, chunk: int,
+                  device) -> dict:
+    """Sample the light field on the mesh, fit the lights (object radius in world units) and write
+    ``light_field.json`` / ``lights.json`` in the GLB's frame; returns the fitted lights."""
+    field = sample_light_field(query.light, query.normal, mesh, m, count=light_samples, chunk=chunk, device=device)
+    scale = float(np.cbrt(abs(np.linalg.det(m[:3, :3]))))
+    radius_w = float(np.linalg.norm(mesh.vertices - mesh.vertices.mean(0), axis=-1).max()) * scale
+    lights = fit_lights(field["points"], field["directions"], field["intensity"], object_radius=radius_w)
+    write_light_field(out_dir, field, lights, gltf_from_world=rot)
+    return lights
+
+
+def _relit_previews(query, m: np.ndarray, out_dir: Path, vw: np.ndarray, up, size: int, bsdf_kind: str, device,
+                    log) -> list:
+    """The three canonical relit previews (:mod:`nepf_core.relight.previews`) around the world
+    mesh ``vw``'s bounding-box centre; a failure is logged and leaves none (previews never cost
+    the export)."""
+    try:
+        from nepf_core.relight.previews import write_relit_previews
+        centre = 0.5 * (vw.min(0) + vw.max(0))
+        return write_relit_previews(query, m, out_dir, centre, float(np.linalg.norm(vw - centre, axis=-1).max()),
+                                    up=up, size=size, bsdf_kind=bsdf_kind, device=device)
+    except Exception as e:  # noqa: BLE001 -- previews never cost the export
+        log(f"warning: relit previews failed (export continues without them): {type(e).__name__}: {e}")
+        return []
+
+
 def export_asset(
     query: FieldQuery,
     world_from_norm: np.ndarray,
@@ -149,64 +232,20 @@ def export_asset(
     frame = frame or UpFrame()
     rot, up = frame.rotation, tuple(float(c) for c in frame.up_vector)
     t_all, cpu_all = time.perf_counter(), time.process_time()
-    timings: dict[str, float] = {}
-
-    def stage(name: str, t0: float) -> float:
-        t1 = time.perf_counter()
-        timings[name] = t1 - t0
-        return t1
-
-    t = time.perf_counter()
-    mesh = extract_mesh(query.sdf, mesh_resolution, bbox, chunk=max(chunk, 262144), device=device)
-    n_mc = len(mesh.faces)
-    t = stage("marching_cubes", t)
-    mesh = decimate_mesh(mesh, max_faces)
-    t = stage("decimate", t)
-    log(f"export: marching cubes {n_mc} faces -> {len(mesh.faces)} after decimation "
-        f"(budget {max_faces})")
-    vn = vertex_normals_from_field(query.normal, np.asarray(mesh.vertices, np.float32), chunk=chunk,
-                                   device=device, fallback=np.asarray(mesh.vertex_normals))
-    t = stage("normals", t)
-
-    vw, nw = mesh_to_world(mesh.vertices, m, vn)
-    import trimesh  # local: keeps the module import light for the CLI
-
-    ply = trimesh.Trimesh(vertices=vw, faces=mesh.faces, vertex_normals=nw, process=False)
-    if np.linalg.det(m[:3, :3]) < 0:  # a reflection flips the winding
-        ply.invert()
-    _write_bytes(out_dir / "mesh.ply", ply.export(file_type="ply", vertex_normal=True))
-    t = stage("ply", t)
+    timer = _StageTimer()
+    mesh, vn, vw, nw = _write_mesh(query, m, out_dir, mesh_resolution, bbox, max_faces, chunk, device, log, timer)
 
     uvm = unwrap_uv(mesh.vertices, mesh.faces, texture_size)
-    t = stage("unwrap", t)
+    timer.lap("unwrap")
     pos = np.asarray(mesh.vertices, np.float32)[uvm.vmapping]
-    nrm = vn[uvm.vmapping]
-    baked = bake_material_textures(query.material, pos, nrm, uvm.uv, uvm.faces, texture_size,
+    baked = bake_material_textures(query.material, pos, vn[uvm.vmapping], uvm.uv, uvm.faces, texture_size,
                                    chunk=chunk, device=device)
-    t = stage("bake", t)
-    base_png = _png_bytes(baked.base_color)
-    orm_png = _png_bytes(baked.orm)
-    _write_bytes(out_dir / "textures" / "base_color.png", base_png)
-    _write_bytes(out_dir / "textures" / "orm.png", orm_png)
+    timer.lap("bake")
+    faces_uv = _write_glb(out_dir, baked, uvm, vw, nw, m, frame, texture_size)
+    timer.lap("glb")
 
-    faces_uv = uvm.faces if np.linalg.det(m[:3, :3]) > 0 else uvm.faces[:, ::-1]
-    # det(rot) = +1: rotating into the GLB frame keeps the winding (no second flip)
-    write_glb(out_dir / "asset.glb", vw[uvm.vmapping] @ rot.T, nw[uvm.vmapping] @ rot.T, uvm.uv, faces_uv,
-              base_png, orm_png,
-              extras={"up": [0.0, 1.0, 0.0], "world_up": frame.world_up, "up_source": frame.source,
-                      "gltf_from_world": rot.tolist(), "texture_size": int(texture_size),
-                      "faces": int(len(uvm.faces)), "world_from_norm": m.tolist()})
-    _write_bytes(out_dir / "frame.json", json.dumps(frame.to_json(), indent=2).encode())
-    t = stage("glb", t)
-
-    field = sample_light_field(query.light, query.normal, mesh, m, count=light_samples,
-                               chunk=chunk, device=device)
-    scale = float(np.cbrt(abs(np.linalg.det(m[:3, :3]))))
-    radius_w = float(np.linalg.norm(mesh.vertices - mesh.vertices.mean(0), axis=-1).max()) * scale
-    lights = fit_lights(field["points"], field["directions"], field["intensity"],
-                        object_radius=radius_w)
-    write_light_field(out_dir, field, lights, gltf_from_world=rot)
-    t = stage("light_field", t)
+    lights = _write_lights(query, mesh, m, out_dir, rot, light_samples, chunk, device)
+    timer.lap("light_field")
 
     written = [out_dir / "mesh.ply", out_dir / "textures" / "base_color.png",
                out_dir / "textures" / "orm.png", out_dir / "asset.glb",
@@ -215,16 +254,10 @@ def export_asset(
         written += render_previews(vw[uvm.vmapping], faces_uv, uvm.uv, nw[uvm.vmapping],
                                    out_dir / "textures" / "base_color.png", out_dir, lights,
                                    frames=preview_frames, size=preview_size, up=up, log=log)
-        t = stage("previews", t)
-        try:  # the three canonical relit previews (nepf_core/relight/previews.py), recorded in the manifest
-            from nepf_core.relight.previews import write_relit_previews
-            lo, hi = vw.min(0), vw.max(0)
-            centre = 0.5 * (lo + hi)
-            written += write_relit_previews(query, m, out_dir, centre, float(np.linalg.norm(vw - centre, axis=-1).max()),
-                                            up=up, size=preview_size, bsdf_kind=relit_bsdf, device=device)
-        except Exception as e:  # noqa: BLE001 -- previews never cost the export
-            log(f"warning: relit previews failed (export continues without them): {type(e).__name__}: {e}")
-        t = stage("relit_previews", t)
+        timer.lap("previews")
+        written += _relit_previews(query, m, out_dir, vw, up, preview_size, relit_bsdf, device, log)
+        timer.lap("relit_previews")
+    timings = timer.timings
     timings["total"] = time.perf_counter() - t_all
     timings["cpu_total"] = time.process_time() - cpu_all  # this process only, all threads
     glb_mb = (out_dir / "asset.glb").stat().st_size / 2**20

@@ -19,6 +19,8 @@ import numpy as np
 import torch
 import xatlas
 
+from nepf_core.color import linear_to_srgb
+
 from .mesh import evaluate_in_chunks
 
 __all__ = [
@@ -26,8 +28,6 @@ __all__ = [
     "unwrap_uv",
     "rasterize_uv",
     "fill_push_pull",
-    "linear_to_srgb",
-    "srgb_to_linear",
     "BakedTextures",
     "bake_material_textures",
 ]
@@ -209,19 +209,6 @@ def fill_push_pull(img: np.ndarray, mask: np.ndarray) -> np.ndarray:
         filled = np.where((w > 0)[..., None], w[..., None] * cur + (1 - w[..., None]) * up, up)
     out = np.where(mask[..., None], img, filled)
     return out.astype(np.float32)
-
-
-def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    """sRGB OETF: ``12.92 x`` for ``x <= 0.0031308`` else ``1.055 x^(1/2.4) - 0.055``."""
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`linear_to_srgb`: ``x / 12.92`` for ``x <= 0.04045`` else
-    ``((x + 0.055) / 1.055)^2.4``."""
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
 
 
 @dataclass

@@ -1,8 +1,11 @@
-"""Finite-difference SDF gradients (normals / eikonal) for grid SDFs.
+"""Finite-difference SDF gradients (normals / eikonal), the one home of the stencils: central
+(6 points) and tetrahedral (4 points). Used for grid SDFs, the Hessian's ``gradient="fd"``
+(:mod:`nepf_core.fields.gradients`) and the lobe rule's view spread.
 
-Grid SDFs are looked up with ``F.grid_sample``; an eikonal loss through
-``autograd.grad(create_graph=True)`` works (torch 2.13) but its double backward costs
-~12x a plain SDF pass on CPU. Finite differences are ordinary forward passes, so the
+Grid SDFs are looked up trilinearly (:mod:`nepf_core.fields.trilinear`), whose table gradient
+is scattered outside autograd: an eikonal loss through ``autograd.grad(create_graph=True)``
+would not reach the table (with ``grid_sample`` it did, at ~12x a plain SDF pass on CPU).
+Finite differences are ordinary forward passes, so the
 gradient estimate is differentiable w.r.t. all parameters at 1.6x (4-point) to 3.7x
 (7-point) of a plain pass. A step tied to the active
 cell size (Neuralangelo) also lets the gradient see neighbouring cells (smoother normals

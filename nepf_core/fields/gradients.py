@@ -1,4 +1,5 @@
-"""SDF gradients (normals) by autograd or central differences, and the Hessian regulariser.
+"""SDF gradients (normals) by autograd, and the Hessian regulariser (finite differences of ``f``
+itself: :mod:`nepf_core.fields.fd_normals`).
 
     grad f(x) = d f / d x                                      (autograd, double backward in training)
     grad_i f(x) ~ (f(x + e e_i) - f(x - e e_i)) / (2 e)        (central differences)
@@ -23,7 +24,7 @@ which made ~40 % of the old diagonal-only term noise; a first difference of ``g`
   double backward, as the eikonal term already does. An exact autograd Hessian (three more
   backward passes, then a triple backward in training) costs ~20 % more and does not work
   for the grid SDF.
-* ``gradient="fd"`` (grid SDF: ``grid_sample`` has no second derivative in its sampling
+* ``gradient="fd"`` (grid SDF: the trilinear lookup has no second derivative in its sampling
   grid): central differences of ``f`` with the same step, so ``H`` is the usual second-
   difference stencil with step ``2e`` on the diagonal (36 SDF evaluations per point). Use a
   step tied to the grid cell (``GridSDF.fd_step``) so that ``e^2`` stays well above the
@@ -39,6 +40,8 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from nepf_core.fields.fd_normals import sdf_gradient_fd
+
 
 def sdf_gradient_autograd(sdf_fn: Callable[[Tensor], tuple[Tensor, Tensor]], x: Tensor,
                           create_graph: bool = True) -> tuple[Tensor, Tensor, Tensor]:
@@ -51,23 +54,6 @@ def sdf_gradient_autograd(sdf_fn: Callable[[Tensor], tuple[Tensor, Tensor]], x: 
         sdf, feat = sdf_fn(x)
         (grad,) = torch.autograd.grad(sdf.sum(), x, create_graph=create_graph)
     return sdf, feat, grad
-
-
-_OFFSETS = torch.tensor([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
-                        dtype=torch.float32)
-
-
-def sdf_gradient_central(sdf_only: Callable[[Tensor], Tensor], x: Tensor, eps: float) -> tuple[Tensor, Tensor]:
-    """Central-difference gradient: ``[N,3] -> (grad [N,3], f(x +- eps e_i) [N,3,2])``.
-
-    The second output holds the six stencil values (``[..., 0]``: ``+eps``, ``[..., 1]``:
-    ``-eps``). Differentiable with respect to the network parameters.
-    """
-    off = _OFFSETS.to(x) * eps  # [6, 3]
-    pts = (x[:, None, :] + off[None]).reshape(-1, 3)
-    f = sdf_only(pts).reshape(-1, 3, 2)  # [N, 3, (+,-)]
-    grad = (f[..., 0] - f[..., 1]) / (2.0 * eps)
-    return grad, f
 
 
 def _autograd_gradient_fn(sdf_only: Callable[[Tensor], Tensor]) -> Callable[[Tensor], Tensor]:
@@ -112,7 +98,7 @@ def sdf_hessian_norm(sdf_only: Callable[[Tensor], Tensor], x: Tensor, eps: float
         grad_fn = _autograd_gradient_fn(sdf_only)
     elif gradient == "fd":
         def grad_fn(p: Tensor) -> Tensor:
-            return sdf_gradient_central(sdf_only, p, eps)[0]
+            return sdf_gradient_fd(sdf_only, p, eps, scheme="central", center="mean")[0]
     else:
         raise ValueError(f"unknown Hessian gradient {gradient!r} (autograd | fd)")
     return frobenius_norm(hessian_central(grad_fn, x, eps))

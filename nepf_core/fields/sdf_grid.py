@@ -2,10 +2,10 @@
 
     h = MLP([G(x), x]),   sdf(x) = |x| - r + h_0,   feature(x) = h_{1:}
 
-``G`` is :class:`nepf_core.fields.grid_encoding.MultiResGrid` (trilinear ``grid_sample``),
+``G`` is :class:`nepf_core.fields.grid_encoding.MultiResGrid` (trilinear, :mod:`nepf_core.fields.trilinear`),
 activated coarse-to-fine through :meth:`set_progress`. The SDF row of the head's last
 layer starts at zero, so training starts from a sphere of radius ``r`` with exact unit
-gradient. ``grid_sample`` has no double backward with respect to its sampling grid, so this
+gradient. The lookup's table gradient is scattered outside autograd (no double backward), so this
 field is used with central-difference normals whose step follows the finest active cell.
 """
 
@@ -31,7 +31,7 @@ class GridSDFConfig:
     max_resolution: int = 128
     """Finest grid nodes per axis."""
     features_per_level: int = 2
-    """Channels per level (2: the grid_sample backward and the gradient zero-fill scale with it;
+    """Channels per level (2: the lookup and its gradient scatter scale with it;
     it dominated a fast step's CPU time at 4)."""
     start_levels: int = 2
     """Levels active at the start of the coarse-to-fine schedule."""

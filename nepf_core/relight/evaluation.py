@@ -55,14 +55,14 @@ def eval_section(run, test, renders: dict, test_images: np.ndarray, test_masks: 
                  *, relight_dir=None, gt_maps=None, device: str = "auto", max_side: int = 0) -> dict:
     """What ``nepf eval`` adds with ``--gt-maps`` (material scores of its renders) and ``--relight``
     (relight PSNR; relit images in ``out_dir/relight``). The lit rule's threshold is the run's
-    ``render.unlit_rel_threshold``."""
+    ``train.unlit_rel_threshold``."""
     import json
 
     from nepf_core.config import NePFConfig
     res: dict = {}
     if gt_maps:
         cfg = NePFConfig.from_dict(json.loads((Path(run) / "config.json").read_text()))
-        res.update(material_scores(renders, gt_maps, test_images, test_masks, cfg.render.unlit_rel_threshold))
+        res.update(material_scores(renders, gt_maps, test_images, test_masks, cfg.train.unlit_rel_threshold))
     if relight_dir:
         res.update(relight_scores(run, relight_dir, test, Path(out_dir) / "relight", device, max_side))
     res["relight_conventions"] = (

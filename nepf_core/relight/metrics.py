@@ -4,7 +4,7 @@
   in TensoIR), fitted on the *displayed* range (:func:`displayed_range_scale`) over all lights,
   views and pixels with GT alpha > 0.5; then ``PSNR(srgb(clip(s p, 0, 1)), srgb(clip(g, 0, 1)))``
   over the same pixels (all three channels of each).
-* **albedo PSNR**: a per-channel least-squares alignment (:func:`channel_scale`; an albedo has no
+* **albedo PSNR**: a per-channel least-squares alignment (:func:`nepf_core.evaluate.channel_scale`; an albedo has no
   highlights, so nothing saturates) and PSNR on the albedo maps
   (:func:`nepf_core.evaluate.albedo_psnr_aligned`), over the GT foreground and over its lit
   pixels (those of the test image with ``max_c L >= rel * q99``, the training rule
@@ -20,19 +20,11 @@ import math
 
 import numpy as np
 
-from nepf_core.evaluate import albedo_psnr_aligned, psnr, srgb_np
+from nepf_core.color import linear_to_srgb
+from nepf_core.evaluate import albedo_psnr_aligned, channel_scale, psnr
 
 FOREGROUND_ALPHA = 0.5
 """A pixel is foreground when the GT alpha exceeds this."""
-
-
-def channel_scale(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """Per-channel least-squares scale ``s_c = sum(g_c p_c) / sum(p_c^2)`` over ``mask``:
-    ``pred, gt [..., 3]``, ``mask [...]`` bool -> ``[3]`` (1 for a channel with no signal)."""
-    p = pred[mask].astype(np.float64)
-    g = gt[mask].astype(np.float64)
-    den = (p * p).sum(0)
-    return np.where(den > 1e-12, (p * g).sum(0) / np.maximum(den, 1e-12), 1.0)
 
 
 def displayed_range_scale(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray, rounds: int = 5) -> np.ndarray:
@@ -71,8 +63,8 @@ def relight_psnr(pred: np.ndarray, gt: np.ndarray, gt_alpha: np.ndarray) -> tupl
                          "(lights, views or resolution)")
     mask = np.broadcast_to(gt_alpha > FOREGROUND_ALPHA, pred.shape[:-1])
     s = displayed_range_scale(pred, gt, mask)
-    a = srgb_np(np.clip(pred.astype(np.float64) * s, 0.0, 1.0))
-    return psnr(a[mask], srgb_np(gt.astype(np.float64))[mask]), s
+    a = linear_to_srgb(np.clip(pred.astype(np.float64) * s, 0.0, 1.0))
+    return psnr(a[mask], linear_to_srgb(gt.astype(np.float64))[mask]), s
 
 
 def mae(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray) -> float:

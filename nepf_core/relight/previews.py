@@ -61,7 +61,7 @@ def write_relit_previews(query, world_from_norm, out_dir, center_world, radius_w
     from PIL import Image
 
     from nepf_core.data.scene import Scene
-    from nepf_core.evaluate import srgb_np
+    from nepf_core.color import linear_to_srgb
     from nepf_core.rays import PixelSampler
     from nepf_core.relight.lights import lights_to_normalised
     from nepf_core.relight.render import query_surfaces, relight_views
@@ -88,7 +88,7 @@ def write_relit_previews(query, world_from_norm, out_dir, center_world, radius_w
     written = []
     for k in range(len(lights)):
         p = prev / f"relit_canonical_{k}.png"
-        Image.fromarray((srgb_np(np.clip(rgb[k, 0], 0, 1)) * 255 + 0.5).astype(np.uint8)).save(p)
+        Image.fromarray((linear_to_srgb(np.clip(rgb[k, 0], 0, 1)) * 255 + 0.5).astype(np.uint8)).save(p)
         written.append(p)
     record = {"images": [p.name for p in written], "bsdf": bsdf_kind, "frame": "input world coordinates",
               "lights": lights.to_json()["lights"], "camera": {k: v for k, v in cam.items() if k != "c2w_world"},

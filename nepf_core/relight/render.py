@@ -39,11 +39,11 @@ def model_surfaces(model, render_cfg, shading) -> SurfaceFn:
 
     def surfaces(rays: RayBatch) -> tuple[SurfaceSamples, Tensor]:
         out = render_rays(model, rays, render_cfg, train=False, shading=shading)
-        s = {k: v.detach() for k, v in out.surf.items()}
-        albedo, metal = s["albedo"], s["metallic"]
+        s = out.surface
+        albedo, metal = s.albedo.detach(), s.metallic.detach()
         if not shading.specular:
             albedo, metal = diffuse_only_material(albedo, metal, shading.diffuse_metal_weight)
-        return (SurfaceSamples(s["x"], s["normal"], rays.directions, albedo, s["roughness"], metal),
+        return (SurfaceSamples(s.x.detach(), s.normal.detach(), rays.directions, albedo, s.roughness.detach(), metal),
                 out.weight_sum.detach().clamp(0.0, 1.0))
     return surfaces
 

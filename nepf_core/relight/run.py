@@ -33,14 +33,14 @@ def write_relight_outputs(out, rgb: np.ndarray, alpha: np.ndarray) -> dict:
     ``alpha [V, H, W]``; returns ``{"lights": K, "views": V, "out": str(out)}``."""
     from PIL import Image
 
-    from nepf_core.evaluate import srgb_np
+    from nepf_core.color import linear_to_srgb
     out = Path(out)
     K, V = rgb.shape[:2]
     for k in range(K):
         d = out / f"light_{k}"
         d.mkdir(parents=True, exist_ok=True)
         for v in range(V):
-            img = (srgb_np(np.clip(rgb[k, v], 0.0, 1.0)) * 255.0 + 0.5).astype(np.uint8)
+            img = (linear_to_srgb(np.clip(rgb[k, v], 0.0, 1.0)) * 255.0 + 0.5).astype(np.uint8)
             Image.fromarray(img).save(d / f"{v:03d}.png")
     dtype = np.float32 if V <= FLOAT32_MAX_VIEWS else np.float16
     np.savez_compressed(out / "arrays.npz", rgb_linear=rgb.astype(dtype), alpha=alpha.astype(dtype))

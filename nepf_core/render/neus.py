@@ -79,3 +79,14 @@ def surface_crossing_t(z: Tensor, f: Tensor, idx: Tensor) -> Tensor:
         fi, fn = f.gather(1, jj[:, None])[:, 0], f.gather(1, jj[:, None] + 1)[:, 0]
         frac = (fi / (fi - fn).clamp_min(1e-12)).clamp(0.0, 1.0)
         return torch.where(enters.any(-1), zi + frac * (zn - zi), z.gather(1, idx[:, None])[:, 0])
+
+
+FOREGROUND_WEIGHT_SUM = 0.5
+"""A ray without a mask is on the object when its opacity ``sum_i w_i`` exceeds this."""
+
+
+def foreground(weight_sum: Tensor) -> Tensor:
+    """``[R] -> [R]`` bool: ``sum_i w_i > 0.5``, the ray ends on the object (no grad). Used where no
+    mask says so: the surface loss terms (:mod:`nepf_core.losses`), the lobe rule's statistics
+    (:mod:`nepf_core.train.rules.lobe_evidence`)."""
+    return weight_sum.detach() > FOREGROUND_WEIGHT_SUM

@@ -8,15 +8,18 @@
 * :mod:`.hooks`: observers for probes and tests; :mod:`.load`: :func:`load_model`.
 """
 
-from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
-from nepf_core.train.hooks import TrainHooks
-from nepf_core.train.load import load_model
-from nepf_core.train.loop import TrainingRun, fit
-from nepf_core.train.metrics_log import MetricsLog
-from nepf_core.train.result import FitError, FitResult
-from nepf_core.train.run_state import RunState
-from nepf_core.train.schedule import lr_factor
-from nepf_core.train.setup import resolve_device
+import importlib
 
-__all__ = ["EvalTargets", "FitError", "FitResult", "MetricsLog", "RunState", "TrainHooks", "TrainingRun",
-           "evaluate_test", "fit", "load_model", "lr_factor", "resolve_device", "sync_psnr"]
+_EXPORTS = {"EvalTargets": "evaluation", "evaluate_test": "evaluation", "sync_psnr": "evaluation",
+            "TrainHooks": "hooks", "load_model": "load", "TrainingRun": "loop", "fit": "loop",
+            "MetricsLog": "metrics_log", "FitError": "result", "FitResult": "result", "RunState": "run_state",
+            "lr_factor": "schedule", "resolve_device": "setup"}
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    """The exports, imported on first use (``nepf_core.config`` imports ``train.rules.config``, the
+    ``rules`` section, while ``train.loop`` imports ``nepf_core.config``)."""
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return getattr(importlib.import_module(f"{__name__}.{_EXPORTS[name]}"), name)

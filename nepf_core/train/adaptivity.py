@@ -1,7 +1,7 @@
 """Adaptivity: leaving out what a scene does not need, every decision recorded.
 
 :class:`Adaptivity` runs the rules of :mod:`nepf_core.train.rules` (each reads the frozen
-:class:`~nepf_core.train.rules.config.RuleConfig` and returns decisions) and applies their
+:class:`~nepf_core.train.rules.config.RuleConfig`, the config's ``rules`` section, and returns decisions) and applies their
 decisions to the :class:`~nepf_core.train.run_state.RunState`, the only place where the
 switches in effect live. It also keeps the statistics that go to ``metrics.jsonl`` and
 ``report.json``.
@@ -9,12 +9,14 @@ switches in effect live. It also keeps the statistics that go to ``metrics.jsonl
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import torch
 
 from nepf_core.reframe import object_world_from_norm, reframe_scene
+from nepf_core.render.surface import SurfaceRequest
 from nepf_core.train.decisions import Decision, DecisionLog
-from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.rules.empty_rays import EmptyRayRule
 from nepf_core.train.rules.hessian import HessianRule
 from nepf_core.train.rules.masks import decide_masks, decide_object_region, lit_outside_masks
@@ -27,16 +29,21 @@ from nepf_core.train.run_state import RunState
 class Adaptivity:
     """The rules of one run, the decisions they took, and the run state they act on."""
 
-    def __init__(self, rc: RuleConfig, run_state: RunState) -> None:
-        self.rc = rc
+    def __init__(self, cfg, run_state: RunState, *, iters_fixed: bool = True) -> None:
+        """``cfg``: the run's :class:`~nepf_core.config.NePFConfig` (a private copy is kept, so no
+        rule sees a later edit); ``iters_fixed``: the user fixed the iteration count (no plateau stop)."""
+        self.cfg = cfg = copy.deepcopy(cfg)
+        self.rc = cfg.rules
+        self.enabled = bool(cfg.train.adaptive)
         self.run_state = run_state
         self.log = DecisionLog()
-        self.specular = SpecularRule(rc)
-        self.hessian = HessianRule(rc)
-        self.plateau = PlateauRule(rc)
-        self.empty_rays = EmptyRayRule(rc)
+        self.specular = SpecularRule(cfg)
+        self.hessian = HessianRule(cfg)
+        self.plateau = PlateauRule(cfg, iters_fixed)
+        self.empty_rays = EmptyRayRule(cfg)
         self.occupied_fraction: float | None = None
         self.cams: torch.Tensor | None = None
+        self._check = False   # the render of this step is a specular check (request -> after_step)
 
     @property
     def decisions(self) -> list[dict]:
@@ -58,7 +65,7 @@ class Adaptivity:
                 rs.diffuse_metal_weight = 1.0   # the same image at the drop, then the fade
             self.plateau.restart()              # the shading model changed
         elif decision.name == "hessian_loss":
-            rs.w_hessian = self.rc.w_hessian if decision.value else 0.0
+            rs.w_hessian = self.cfg.loss.w_hessian if decision.value else 0.0
 
     # -- before training --
     def before_training(self, scene):
@@ -70,7 +77,7 @@ class Adaptivity:
         self.surface_points = None
         """Without masks: the points triangulated in the object region ``[P, 3]`` (or None)."""
         lit = lit_outside_masks(scene.images, scene.masks) if scene.has_masks else 0.0
-        use, background, decisions = decide_masks(scene.has_masks, self.rc.w_mask, lit)
+        use, background, decisions = decide_masks(scene.has_masks, self.cfg.loss.w_mask, lit)
         self.run_state.use_mask_loss, self.run_state.background = use, background
         if background and not scene.has_masks:
             self.run_state.object_halfspace, region, self.surface_points, frame = decide_object_region(scene)
@@ -81,13 +88,13 @@ class Adaptivity:
         self.cams = None if c2w is None else torch.as_tensor(np.asarray(c2w)[:, :3, 3], dtype=torch.float32)
         for d in decisions:
             self.record(d)
-        self.record(empty_space_decision(self.rc))
-        if not self.rc.enabled:
+        self.record(empty_space_decision(self.cfg))
+        if not self.enabled:
             self.record(Decision("adaptive", False, "adaptivity disabled: every term stays on"))
         return scene
 
     def start_occupancy(self, model, scene) -> None:
-        self.record(carve_visual_hull(model, scene, self.rc))
+        self.record(carve_visual_hull(model, scene, self.cfg))
 
     # -- during training --
     def refresh_occupancy(self, model, step: int) -> None:
@@ -101,19 +108,24 @@ class Adaptivity:
         self.record(decision)
         return kept, left_out
 
-    def wants_evidence(self, step: int) -> bool:
-        """Whether step ``step`` is a specular check (render the surface extras for it)."""
-        return self.specular.wants_evidence(step)
+    def request(self, step: int) -> SurfaceRequest:
+        """What the rules read from the render of step ``step`` (before it): the lobe split at the
+        specular rule's checks (every ``check_every`` steps)."""
+        self._check = self.specular.wants_evidence(step)
+        return SurfaceRequest(lobe_split=self._check)
 
-    def observe(self, step: int, model, out, rays) -> None:
-        """A check's evidence on the lobe (call before :meth:`after_step`)."""
-        self.specular.observe(step, model, out, rays, self.cams, self.run_state.specular)
-
-    def after_step(self, step: int, out, losses: dict) -> None:
-        """The per-step rules, in order: eikonal EMA, the lobe's fade, Hessian, lobe decision."""
+    def after_step(self, step: int, out, losses: dict, *, model=None, rays=None, check: bool | None = None) -> None:
+        """The per-step rules once the optimiser step has made the step count ``step``, in order: the
+        check's lobe evidence (from ``model``, ``out`` and its ``rays``, when given), eikonal EMA, the
+        lobe's fade, Hessian, lobe decision. ``check``: whether ``out`` is a specular check's render
+        (None: whether :meth:`request` asked for one)."""
+        check = self._check if check is None else check
+        self._check = False
+        if check and rays is not None:
+            self.specular.observe(step, model, out, rays, self.cams, self.run_state.specular)
         eik = float(losses["loss_eik"].detach()) if "loss_eik" in losses else 0.0
         self.hessian.observe(eik)
-        if not self.rc.enabled:
+        if not self.enabled:
             return
         rs = self.run_state
         w = self.specular.fade_weight(step, rs.specular, rs.diffuse_metal_weight)
@@ -122,8 +134,9 @@ class Adaptivity:
             if w <= 0.0:
                 self.plateau.restart()   # the fade is over: the model from here on is the one to judge
         self.record(self.hessian.decide(step, rs.w_hessian))
-        for d in self.specular.decide(step, out, rs.specular):
-            self.record(d)
+        if check:
+            for d in self.specular.decide(step, out, rs.specular):
+                self.record(d)
 
     def on_test_eval(self, step: int, rec: dict, progress: float | None = None) -> None:
         self.record(self.plateau.on_test_eval(step, rec, progress))
@@ -159,7 +172,7 @@ class Adaptivity:
         """``report.json``: status, decisions, the final switches and the run state, empty-space
         statistics."""
         rs = self.run_state
-        if self.rc.enabled and rs.specular and self.specular.stats and not self.log.has("specular_lobe"):
+        if self.enabled and rs.specular and self.specular.stats and not self.log.has("specular_lobe"):
             self.log.add(self.specular.kept_report(step))   # a record only: nothing changes
         rep = {"status": status, "step": step, "nonfinite_steps": nonfinite, "decisions": self.log.records,
                "final_switches": {"specular": rs.specular, "mask_loss": rs.use_mask_loss,

@@ -29,10 +29,10 @@ from nepf_core.callbacks import FitCallbacks
 from nepf_core.checkpoint import load_checkpoint, prune_checkpoints, save_checkpoint
 from nepf_core.config import NePFConfig
 from nepf_core.data.scene import Scene
-from nepf_core.losses import compute_losses
+from nepf_core.losses import compute_losses, needs_lobe_split, total_loss
 from nepf_core.model import NePFModel
 from nepf_core.rays import PixelSampler
-from nepf_core.render.renderer import render_background_only, render_rays
+from nepf_core.render.renderer import SurfaceRequest, render_background_only, render_rays
 from nepf_core.reframe import reframe_scene
 from nepf_core.resume import cut_metrics_to_checkpoint, write_checkpoint_info
 from nepf_core.train.adaptivity import Adaptivity
@@ -41,7 +41,6 @@ from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
 from nepf_core.train.hooks import TrainHooks
 from nepf_core.train.metrics_log import MetricsLog, plot_error_vs_time, write_json_atomic
 from nepf_core.train.result import FitError, FitResult
-from nepf_core.train.rules.config import RuleConfig
 from nepf_core.train.run_state import RunState
 from nepf_core.train.schedule import (coarse_to_fine, cos_anneal_ratio, progress_fraction, run_eta,
                                      scheduled_lr_factor)
@@ -66,7 +65,7 @@ def fit(scene: Scene, run_dir, cfg: NePFConfig, *, device: str = "auto", callbac
         targets: held-out views / GT mesh / GT albedo for error-against-time records.
         iters_fixed: the user fixed the iteration count (disables plateau early stop).
         hooks: observers of steps, evaluations and checkpoints.
-        rules: overrides of the adaptivity constants (:class:`~nepf_core.train.rules.config.RuleConfig`
+        rules: overrides of the ``rules`` section (:class:`~nepf_core.train.rules.config.RuleConfig`
             field names; tests and probes).
     Returns:
         :class:`FitResult` (status ``succeeded``, ``cancelled`` or ``stopped_early``).
@@ -95,8 +94,10 @@ class TrainingRun:
         torch.manual_seed(tc.seed)
         np.random.seed(tc.seed)
 
+        cfg.check()
         self.run_state = RunState.from_config(cfg)
-        self.adapt = Adaptivity(RuleConfig.from_config(cfg, iters_fixed=iters_fixed, **(rules or {})), self.run_state)
+        rule_cfg = dataclasses.replace(cfg, rules=dataclasses.replace(cfg.rules, **(rules or {})))
+        self.adapt = Adaptivity(rule_cfg, self.run_state, iters_fixed=iters_fixed)
         scene = self.scene = self.adapt.before_training(scene)   # maybe in the object's frame
         # the cameras' mean up vector in the input's world: the export's up axis (nepf_core.up_axis)
         self.camera_up = camera_up_world(scene.c2w, scene.world_from_norm)
@@ -114,7 +115,7 @@ class TrainingRun:
         points = self.adapt.surface_points   # without masks: where the images saw a surface
         self.surface_points = (SurfacePointPrior(points, dev) if cfg.loss.w_surface_points > 0 and points is not None
                                and len(points) else None)
-        self.unlit_thr, decision = unlit_pixels(scene, cfg.render)
+        self.unlit_thr, decision = unlit_pixels(scene, cfg.render.unlit_albedo_stopgrad, tc.unlit_rel_threshold)
         self.adapt.record(decision)
         if self.model.occupancy is not None:
             self.adapt.start_occupancy(self.model, scene)
@@ -224,21 +225,19 @@ class TrainingRun:
         if self.unlit_thr is not None:
             rays.unlit = rays.rgb.amax(-1) < self.unlit_thr
         rays, left_out = self.adapt.thin_empty_rays(model, rays, self.step, generator=self.gen)
-        self._evidence = self.adapt.wants_evidence(self.step)
+        loss_cfg = rs.loss_config(self.cfg.loss)
+        request = SurfaceRequest(lobe_split=needs_lobe_split(loss_cfg)) | self.adapt.request(self.step)
         out = render_rays(model, rays, self.run_cfg.render, train=True, cos_anneal=self.anneal, generator=self.gen,
-                          need_surface_extras=self._evidence, need_lobe_share=self.cfg.loss.w_metallic_unseen > 0,
-                          shading=rs.shading())
+                          request=request, shading=rs.shading())
         background_rays = None   # the misses left out still show the background: it alone renders them
         if left_out is not None:
             background_rays = (render_background_only(model, left_out, self.run_cfg.render, train=True,
                                                       generator=self.gen), left_out)
         self._n_background_rays = 0 if background_rays is None else len(left_out)
-        losses = compute_losses(out, rays, rs.loss_config(self.cfg.loss), use_mask=rs.use_mask_loss,
-                                specular=rs.specular, background=rs.background, background_rays=background_rays)
-        if self.surface_points is not None:
-            losses["loss_surface_points"] = self.surface_points.loss(model, self.gen)
-            losses["loss"] = losses["loss"] + self.cfg.loss.w_surface_points * losses["loss_surface_points"]
-        loss = losses["loss"]
+        points = None if self.surface_points is None else (lambda: self.surface_points.loss(model, self.gen))
+        losses = compute_losses(out, rays, loss_cfg, use_mask=rs.use_mask_loss, specular=rs.specular,
+                                background=rs.background, background_rays=background_rays, surface_points=points)
+        loss = losses["loss"] = total_loss(losses, loss_cfg)
         self.optimizer.zero_grad(set_to_none=True)
         ok = bool(torch.isfinite(loss))
         if ok:
@@ -263,9 +262,7 @@ class TrainingRun:
         tc, step = self.cfg.train, self.step
         self._n_rays += len(rays)
         self._n_samples += out.n_samples
-        if self._evidence:
-            self.adapt.observe(step, self.model, out, rays)
-        self.adapt.after_step(step, out, losses)
+        self.adapt.after_step(step, out, losses, model=self.model, rays=rays)
         shading = (self.run_state.specular, self.run_state.diffuse_metal_weight)
         if self.ema is not None and shading != self._shading_seen:
             self.ema.reset(self.model)   # weights averaged across a change of the shading model do not fit it
@@ -310,7 +307,7 @@ class TrainingRun:
             with self.ema.applied(self.model) if self.ema is not None else nullcontext():
                 stride = max(self.cfg.train.eval_stride, self.targets.stride or 1)
                 rec = evaluate_test(self.model, self.run_cfg, self.targets, self.device, self.scene.world_from_norm,
-                                    stride, with_chamfer=True, shading=self.run_state.shading())
+                                    stride, with_chamfer=True, shading=self.run_state.shading(), preview_dir=self.dir)
             rec.update({"kind": "test", "step": self.step, "wall_s": round(w_train, 3), "final": final,
                         "eval_stride": stride})
             for h in self.hooks:

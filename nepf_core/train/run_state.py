@@ -28,7 +28,8 @@ class RunState:
     w_hessian: float = 0.0
     """Weight of the Hessian term in effect (the preset's, or 0 while the surface is smooth)."""
     background: bool = False
-    """The model has a background radiance B(d) (scenes without masks)."""
+    """The model has a background volume (:mod:`nepf_core.fields.background`): captures without
+    masks, and masks whose images are not black outside them (:mod:`nepf_core.train.rules.masks`)."""
     use_mask_loss: bool = False
     """The mask BCE applies (scenes with masks and ``loss.w_mask > 0``)."""
     object_halfspace: list[float] | None = None

@@ -144,10 +144,12 @@ export const api = {
   artifacts: (id, signal) => request('GET', `/jobs/${enc(id)}/artifacts`, { signal }),
   cancel: (id) => request('POST', `/jobs/${enc(id)}/cancel`),
   remove: (id) => request('DELETE', `/jobs/${enc(id)}`),
+  /** The JSON schema of a job's config with this server's limits (the upload form checks them). */
+  jobConfigSchema: (signal) => request('GET', '/schemas/job-config', { signal }),
   artifactUrl,
   /** Fetch an artifact as a Response (auth header attached). */
-  async artifact(id, path, signal) {
-    const res = await fetch(artifactUrl(id, path), { headers: authHeaders(), signal });
+  async artifact(id, path, signal, cache = 'default') {
+    const res = await fetch(artifactUrl(id, path), { headers: authHeaders(), signal, cache });
     if (!res.ok) {
       const body = await parseBody(res);
       throw new ApiError(res.status, errorSummary(body, res.status), body);
@@ -157,8 +159,8 @@ export const api = {
   async artifactJson(id, path, signal) {
     return (await api.artifact(id, path, signal)).json();
   },
-  async artifactBlob(id, path, signal) {
-    return (await api.artifact(id, path, signal)).blob();
+  async artifactBlob(id, path, signal, cache = 'default') {
+    return (await api.artifact(id, path, signal, cache)).blob();
   },
   /**
    * URL for the job's SSE stream. EventSource cannot send headers, so the API hands out a

@@ -7,7 +7,7 @@ const PALETTE = ['#4e9af1', '#f29e4c', '#5cc98a', '#e5607a', '#b48cf2', '#e8d25c
 
 const SYNC_KEYS = [
   { key: 'psnr_r', label: 'L_r (rendering)' },
-  { key: 'psnr_surf', label: 'L_surf (surface)' },
+  { key: 'psnr_surf', label: 'L_surf (surface, over the background)' },
   { key: 'psnr_vol', label: 'L_vol (volume)' },
 ];
 const ERR_KEYS = [

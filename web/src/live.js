@@ -56,7 +56,7 @@ export function isMetricRecord(d) {
  * with new metric records (each record once, in order) and `onMode(mode)` when the way it
  * follows changes ('connecting' | 'sse' | 'polling' | 'stopped').
  *
- * Protocol (api/routes/jobs.py): GET the job, then open the SSE stream
+ * Protocol (api/routes/events.py): GET the job, then open the SSE stream
  * `/jobs/{id}/events?ticket=..&since=N` (ticket from POST /events/ticket). Events:
  * `metrics` (one metrics.jsonl record, `id` = cursor), `progress` ({status, progress, error,
  * cancel_requested, decisions}) and `end` ({status}). A dropped stream is reopened with a
@@ -65,119 +65,137 @@ export function isMetricRecord(d) {
  * Returns `stop()`; `stop.state.mode` is the current mode.
  */
 export function followJob(id, { onJob, onMetrics, onMode, pollMs = 2000, metrics = true } = {}) {
-  let stopped = false;
-  let es = null;
-  let timer = null;
-  let since = 0; // metrics cursor: number of records already delivered
-  let job = null;
-  let mode = 'connecting';
-  let sseFailures = 0;
-  const state = { get mode() { return mode; }, get since() { return since; } };
-  const setMode = (m) => {
-    if (m === mode) return;
-    mode = m;
-    onMode?.(m);
-  };
+  const f = new JobFollower(id, { onJob, onMetrics, onMode, pollMs, metrics });
+  f.start();
+  const state = { get mode() { return f.mode; }, get since() { return f.since; } };
+  return Object.assign(() => f.stopAll(), { state });
+}
 
-  const emitJob = (j) => {
-    if (!j || stopped) return;
+/** The state of one followed job (see followJob): the SSE stream, or polling, and the cursor. */
+class JobFollower {
+  constructor(id, { onJob, onMetrics, onMode, pollMs, metrics }) {
+    Object.assign(this, { id, onJob, onMetrics, onMode, pollMs, metrics });
+    this.stopped = false;
+    this.es = null;
+    this.timer = null;
+    this.since = 0; // metrics cursor: number of records already delivered
+    this.job = null;
+    this.mode = 'connecting';
+    this.sseFailures = 0;
+  }
+
+  async start() {
+    // Initial state: the job record and the metrics so far.
+    await Promise.all([this.pollJob(), this.pollMetrics()]);
+    if (this.stopped) return;
+    if (this.job && isFinal(this.job.status)) {
+      this.stopAll();
+      return;
+    }
+    this.openStream();
+  }
+
+  setMode(m) {
+    if (m === this.mode) return;
+    this.mode = m;
+    this.onMode?.(m);
+  }
+
+  emitJob(j) {
+    if (!j || this.stopped) return;
     // a finished job stays finished: a late answer from before the end must not revive it
-    if (job && isFinal(job.status) && !isFinal(j.status) && j.status !== 'deleted') return;
-    job = j;
-    onJob?.(j);
-  };
+    if (this.job && isFinal(this.job.status) && !isFinal(j.status) && j.status !== 'deleted') return;
+    this.job = j;
+    this.onJob?.(j);
+  }
 
-  const deliver = (recs, cursorAfter) => {
-    if (!recs.length || stopped) return;
-    since = cursorAfter;
-    onMetrics?.(recs);
-  };
+  deliver(recs, cursorAfter) {
+    if (!recs.length || this.stopped) return;
+    this.since = cursorAfter;
+    this.onMetrics?.(recs);
+  }
 
-  async function pollMetrics() {
-    if (!metrics) return;
+  async pollMetrics() {
+    if (!this.metrics) return;
     try {
-      const res = await api.metrics(id, since);
+      const res = await api.metrics(this.id, this.since);
       const recs = res?.records || [];
-      deliver(recs, Number.isFinite(res?.next_since) ? res.next_since : since + recs.length);
+      this.deliver(recs, Number.isFinite(res?.next_since) ? res.next_since : this.since + recs.length);
     } catch (e) {
       if (e.status !== 404) console.warn('metrics poll failed:', e.message);
     }
   }
 
-  async function pollJob() {
+  async pollJob() {
     try {
-      emitJob(normJob(await api.getJob(id)));
+      this.emitJob(normJob(await api.getJob(this.id)));
     } catch (e) {
       if (e.status === 404) {
-        emitJob({ ...(job || normJob({ id })), status: 'deleted' });
-        stopAll();
+        this.emitJob({ ...(this.job || normJob({ id: this.id })), status: 'deleted' });
+        this.stopAll();
       } else console.warn('job poll failed:', e.message);
     }
   }
 
-  function startPolling() {
-    if (stopped || mode === 'polling') return;
-    setMode('polling');
+  startPolling() {
+    if (this.stopped || this.mode === 'polling') return;
+    this.setMode('polling');
     const tick = async () => {
-      if (stopped) return;
-      await Promise.all([pollJob(), pollMetrics()]);
-      if (job && isFinal(job.status)) {
-        await pollMetrics(); // drain what was written last
-        stopAll();
+      if (this.stopped) return;
+      await Promise.all([this.pollJob(), this.pollMetrics()]);
+      if (this.job && isFinal(this.job.status)) {
+        await this.pollMetrics(); // drain what was written last
+        this.stopAll();
         return;
       }
-      if (!stopped) timer = setTimeout(tick, pollMs);
+      if (!this.stopped) this.timer = setTimeout(tick, this.pollMs);
     };
     tick();
   }
 
-  function stopAll() {
-    stopped = true;
-    setMode('stopped');
-    if (es) es.close();
-    es = null;
-    clearTimeout(timer);
-    timer = null;
+  stopAll() {
+    this.stopped = true;
+    this.setMode('stopped');
+    if (this.es) this.es.close();
+    this.es = null;
+    clearTimeout(this.timer);
+    this.timer = null;
   }
 
-  async function openStream() {
-    if (stopped || mode === 'polling') return;
-    if (typeof EventSource === 'undefined') return startPolling();
+  async openStream() {
+    if (this.stopped || this.mode === 'polling') return;
+    if (typeof EventSource === 'undefined') return this.startPolling();
     let url;
     try {
-      url = await api.eventsUrl(id, metrics ? since : 1e9);
+      url = await api.eventsUrl(this.id, this.metrics ? this.since : 1e9);
     } catch (e) {
       console.warn('no SSE ticket, polling instead:', e.message);
-      return startPolling();
+      return this.startPolling();
     }
-    if (stopped || es || mode === 'polling') return; // stopped, already open, or gave up on SSE
+    if (this.stopped || this.es || this.mode === 'polling') return; // stopped, already open, or gave up on SSE
     const src = new EventSource(url);
-    es = src;
-    setMode('sse');
-    // events of a source that is no longer the current one (closed, replaced) are dropped
+    this.es = src;
+    this.setMode('sse');
+    this.listen(src);
+  }
+
+  /** The stream's handlers; events of a source that is no longer the current one are dropped. */
+  listen(src) {
     const current = () => {
-      if (src === es && !stopped) return true;
+      if (src === this.es && !this.stopped) return true;
       src.close();
       return false;
     };
     src.addEventListener('open', () => {
-      if (current()) sseFailures = 0;
+      if (current()) this.sseFailures = 0;
     });
     src.addEventListener('metrics', (ev) => {
-      if (!current()) return;
-      let rec;
-      try {
-        rec = JSON.parse(ev.data);
-      } catch {
-        return;
-      }
-      const cur = Number(ev.lastEventId);
-      if (metrics) deliver([rec], Number.isFinite(cur) && cur > 0 ? cur : since + 1);
+      if (current()) this.onMetricsEvent(ev);
     });
     src.addEventListener('progress', (ev) => {
       if (!current()) return;
       try {
-        emitJob(applyEvent(job || normJob({ id }), JSON.parse(ev.data)));
+        this.emitJob(applyEvent(this.job || normJob({ id: this.id }), JSON.parse(ev.data)));
       } catch {
         /* ignore a malformed event */
       }
@@ -186,33 +204,31 @@ export function followJob(id, { onJob, onMetrics, onMode, pollMs = 2000, metrics
       if (!current()) return;
       // the job is final: close (EventSource would reconnect) and read the full record
       src.close();
-      es = null;
-      await pollJob();
-      await pollMetrics();
-      stopAll();
+      this.es = null;
+      await this.pollJob();
+      await this.pollMetrics();
+      this.stopAll();
     });
     src.onerror = () => {
       if (!current()) return;
       // Tickets expire, so never let EventSource retry with the old URL: reopen with a new
       // ticket from the cursor; after repeated failures fall back to polling.
       src.close();
-      es = null;
-      sseFailures++;
-      if (sseFailures >= 3) startPolling();
-      else setTimeout(openStream, 1000 * sseFailures);
+      this.es = null;
+      this.sseFailures++;
+      if (this.sseFailures >= 3) this.startPolling();
+      else setTimeout(() => this.openStream(), 1000 * this.sseFailures);
     };
   }
 
-  (async () => {
-    // Initial state: the job record and the metrics so far.
-    await Promise.all([pollJob(), pollMetrics()]);
-    if (stopped) return;
-    if (job && isFinal(job.status)) {
-      stopAll();
+  onMetricsEvent(ev) {
+    let rec;
+    try {
+      rec = JSON.parse(ev.data);
+    } catch {
       return;
     }
-    openStream();
-  })();
-
-  return Object.assign(stopAll, { state });
+    const cur = Number(ev.lastEventId);
+    if (this.metrics) this.deliver([rec], Number.isFinite(cur) && cur > 0 ? cur : this.since + 1);
+  }
 }

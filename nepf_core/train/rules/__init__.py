@@ -1,4 +1,4 @@
-"""Adaptivity rules: each reads a frozen :class:`~nepf_core.train.rules.config.RuleConfig` and
+"""Adaptivity rules: each reads the config's ``rules`` section (:class:`~nepf_core.train.rules.config.RuleConfig`) and
 returns :class:`~nepf_core.train.decisions.Decision` objects; the coordinator
 (:class:`nepf_core.train.adaptivity.Adaptivity`) applies them to the run state.
 

@@ -13,9 +13,8 @@ shows the background: its colour is ``C_bg`` (its SDF weights sum to at most ~e^
 misses left out of the SDF batch are then returned too (at most as many as the SDF batch holds,
 with importance weights), and the loop renders them through the background volume alone
 (:func:`nepf_core.render.renderer.render_background_only`), so the background pixels train the
-background at the cost of their background samples only. Without that, the wall
-behind a mounted object (half the pixels of the fox) trained about ``miss_keep`` as often as
-the object did.
+background at the cost of their background samples only: the background pixels (the wall
+behind a mounted object, half the pixels of the fox) train as often as the object's.
 
 Only with adaptivity on and an occupancy grid that has been refreshed. The NeuS sampler spreads
 a kept ray's samples over its whole chord, so a surface outside the occupied cells is still
@@ -27,12 +26,12 @@ from __future__ import annotations
 import torch
 
 from nepf_core.train.decisions import Decision
-from nepf_core.train.rules.config import RuleConfig
 
 
 class EmptyRayRule:
-    def __init__(self, rc: RuleConfig) -> None:
-        self.rc = rc
+    def __init__(self, cfg) -> None:
+        """``cfg``: the run's :class:`~nepf_core.config.NePFConfig` (``rules.miss_keep``, ``train.adaptive``)."""
+        self.cfg, self.rc = cfg, cfg.rules
         self.last: float | None = None
         """Share of the drawn rays left out at the last step (logged as ``rays_left_out``)."""
         self.total, self.count = 0.0, 0
@@ -49,7 +48,7 @@ class EmptyRayRule:
         background); ``first``: no ``empty_rays`` decision was recorded yet
         (it is recorded once)."""
         occ = getattr(model, "occupancy", None)
-        if not self.rc.enabled or occ is None or int(occ.n_updates) == 0:
+        if not self.cfg.train.adaptive or occ is None or int(occ.n_updates) == 0:
             return rays, None, None
         from nepf_core.render.sampling import object_segment
         near, far, _, _ = object_segment(rays.origins, rays.directions, model.cfg.object_halfspace)

@@ -9,12 +9,13 @@ curvature penalty mostly costs time, and it comes back if the field degrades.
 from __future__ import annotations
 
 from nepf_core.train.decisions import Decision
-from nepf_core.train.rules.config import RuleConfig
 
 
 class HessianRule:
-    def __init__(self, rc: RuleConfig) -> None:
-        self.rc = rc
+    def __init__(self, cfg) -> None:
+        """``cfg``: the run's :class:`~nepf_core.config.NePFConfig` (``rules``, ``train.adaptive``,
+        ``loss.w_hessian``)."""
+        self.cfg, self.rc = cfg, cfg.rules
         self.eik_ema: float | None = None
 
     def observe(self, eikonal: float) -> None:
@@ -24,7 +25,8 @@ class HessianRule:
     def decide(self, step: int, w_in_effect: float) -> Decision | None:
         """At a check: a decision when the wanted state differs from ``w_in_effect > 0``."""
         rc = self.rc
-        if not rc.enabled or rc.w_hessian <= 0 or step % rc.check_every != 0 or self.eik_ema is None:
+        if not self.cfg.train.adaptive or self.cfg.loss.w_hessian <= 0 or step % rc.check_every != 0 \
+                or self.eik_ema is None:
             return None
         want = self.eik_ema > rc.eik_thr
         if want == (w_in_effect > 0):

@@ -13,6 +13,8 @@ import math
 
 import torch
 
+from nepf_core.render.neus import foreground
+
 
 def lobe_residual_gain(rgb_surf: torch.Tensor, diffuse_only: torch.Tensor, target: torch.Tensor) -> float:
     """What the GGX lobe explains, on surface rays ``[N, 3]``: ``g = E_d / E - 1`` with
@@ -30,18 +32,18 @@ def lobe_residual_gain(rgb_surf: torch.Tensor, diffuse_only: torch.Tensor, targe
 def batch_lobe_evidence(out, rays, specular_on: bool) -> tuple[float | None, float | None]:
     """``(lobe residual gain or None, highlight residual ratio or None)`` of one rendered batch.
 
-    The gain (lobe on, ``out.surf["diffuse_only"]`` present, >= 8 foreground rays on the surface)
+    The gain (lobe on, ``out.lobe`` present, >= 8 foreground rays on the surface)
     is :func:`lobe_residual_gain` on those rays. The ratio is ``mean_top |L_vol - I| / median
-    |L_vol - I|`` over foreground pixels (mask, or ``sum w > 0.5`` without one), ``top`` the
+    |L_vol - I|`` over foreground pixels (mask, or :func:`~nepf_core.render.neus.foreground` without one), ``top`` the
     brightest 5 % by mean channel (at least 20 foreground pixels)."""
     if rays.rgb is None:
         return None, None
     err = (out.rgb_vol.detach() - rays.rgb).abs().mean(-1)
-    fgm = (rays.mask > 0.5) if rays.mask is not None else (out.weight_sum.detach() > 0.5)
-    on_surf = fgm & (out.weight_sum.detach() > 0.5)
+    fgm = (rays.mask > 0.5) if rays.mask is not None else foreground(out.weight_sum)
+    on_surf = fgm & foreground(out.weight_sum)
     gain = None
-    if specular_on and "diffuse_only" in out.surf and int(on_surf.sum()) >= 8:
-        gain = lobe_residual_gain(out.rgb_surf.detach()[on_surf], out.surf["diffuse_only"][on_surf], rays.rgb[on_surf])
+    if specular_on and out.lobe is not None and int(on_surf.sum()) >= 8:
+        gain = lobe_residual_gain(out.rgb_surf.detach()[on_surf], out.lobe.diffuse_only[on_surf], rays.rgb[on_surf])
     err, lum = err[fgm], rays.rgb.mean(-1)[fgm]
     top = lum >= torch.quantile(lum, 0.95) if lum.numel() >= 20 else lum > 1e9
     ratio = float(err[top].mean() / err.median().clamp_min(1e-4)) if top.sum() > 0 else None
@@ -59,16 +61,14 @@ def lit_view_spread(model, out, rays, cams: torch.Tensor, view_points: int,
     not yet explain them is no evidence. ``status``: ``"none"`` (fewer than 8 points: nothing
     measured, keep the last spread), ``"unfit"`` (``fit_error > radiance_fit_max``: no spread
     now), ``"measured"`` (``spread`` is finite, or None when no point faces two cameras)."""
-    if "x" not in out.surf:
-        return "none", None, None
     from nepf_core.view_dependence import radiance_view_spread
-    fg = out.weight_sum.detach() > 0.5
+    fg = foreground(out.weight_sum)
     if rays.mask is not None:
         fg = fg & (rays.mask > 0.5)
     unlit = getattr(rays, "unlit", None)
     if unlit is not None:
         fg = fg & ~unlit
-    x = out.surf["x"].detach()[fg][:view_points]
+    x = out.surface.x.detach()[fg][:view_points]
     if x.shape[0] < 8:
         return "none", None, None
     fit_err = None

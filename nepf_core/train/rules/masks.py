@@ -72,8 +72,7 @@ def decide_object_region(scene) -> tuple[list[float] | None, list[Decision], np.
     :mod:`nepf_core.train.surface_points`) are in that frame. ``frame`` is None when there is
     no support (the load frame stays)."""
     from nepf_core.data.normalize import CAMERA_CLEARANCE
-    from nepf_core.data.object_region import decide_object_region as decide
-    from nepf_core.data.object_region import enclosing_ball
+    from nepf_core.data.object_region import enclosing_ball, find_object_region
     from nepf_core.data.sparse_points import scene_points
 
     def in_front(p: np.ndarray, hs) -> np.ndarray:
@@ -82,7 +81,7 @@ def decide_object_region(scene) -> tuple[list[float] | None, list[Decision], np.
     sparse, source = scene_points(scene)
     cams = np.asarray(scene.c2w, dtype=np.float64)[:, :3, 3]
     reach = float(np.linalg.norm(cams, axis=1).min()) / CAMERA_CLEARANCE
-    region = decide(scene, points=sparse, search_radius=reach)
+    region = find_object_region(scene, points=sparse, search_radius=reach)
     frame, decisions = None, []
     hs = region.halfspace()
     if hs is not None:

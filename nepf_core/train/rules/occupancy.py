@@ -10,25 +10,25 @@ reported as ``occupied_fraction``.
 from __future__ import annotations
 
 from nepf_core.train.decisions import Decision
-from nepf_core.train.rules.config import RuleConfig
 
 
-def empty_space_decision(rc: RuleConfig) -> Decision | None:
-    """The record of what the grid is used for (None without a grid)."""
-    if rc.occupancy_resolution <= 0:
+def empty_space_decision(cfg) -> Decision | None:
+    """The record of what the grid is used for (None without a grid); ``cfg``: the run's
+    :class:`~nepf_core.config.NePFConfig`."""
+    res, on = cfg.model.occupancy_resolution, bool(cfg.train.adaptive)
+    if res <= 0:
         return None
-    how = ("rays that meet no occupied cell leave the training batch" if rc.enabled else
+    how = ("rays that meet no occupied cell leave the training batch" if on else
            "the grid is maintained but not used (adaptivity off)")
-    return Decision("empty_space_skipping", rc.enabled,
-                    f"occupancy grid {rc.occupancy_resolution}^3 refreshed from the SDF during training: {how}")
+    return Decision("empty_space_skipping", on, f"occupancy grid {res}^3 refreshed from the SDF during training: {how}")
 
 
-def carve_visual_hull(model, scene, rc: RuleConfig) -> Decision | None:
+def carve_visual_hull(model, scene, cfg) -> Decision | None:
     """Restrict the grid (and its refreshes) to the masks' visual hull; None without masks."""
     from nepf_core.render.visual_hull import visual_hull_cells
     if not scene.has_masks:
         return None
-    if not rc.enabled:
+    if not cfg.train.adaptive:
         return Decision("visual_hull", False, "adaptivity disabled: samples may fall outside the mask bounds "
                         "(everything-on baseline)")
     hull = visual_hull_cells(scene, model.occupancy.cfg.resolution, device=model.hull.device)

@@ -8,7 +8,7 @@ become the bar), and compares it with the best mean so far. The run has plateaue
 **and** they span ``t - t_best >= plateau_min_frac t`` of the training time ``t`` so far (so
 frequent evaluations cannot stop a run that still improves slowly). The first full mean sets
 the first bar. With a grid SDF no evaluation counts before the coarse-to-fine schedule has
-activated every level (``plateau_min_progress``): the model is still gaining resolution.
+activated every level (:attr:`PlateauRule.min_progress`): the model is still gaining resolution.
 
 Then the learning-rate factor follows a cosine from its value ``f0`` at the plateau to the floor
 ``alpha`` over ``D = plateau_cooldown_frac t``,
@@ -24,12 +24,13 @@ from __future__ import annotations
 import math
 
 from nepf_core.train.decisions import Decision
-from nepf_core.train.rules.config import RuleConfig
 
 
 class PlateauRule:
-    def __init__(self, rc: RuleConfig) -> None:
-        self.rc = rc
+    def __init__(self, cfg, iters_fixed: bool = True) -> None:
+        """``cfg``: the run's :class:`~nepf_core.config.NePFConfig`; ``iters_fixed``: the user fixed
+        the iteration count (no plateau stop)."""
+        self.cfg, self.rc, self.iters_fixed = cfg, cfg.rules, iters_fixed
         self.plateaued = False
         self.stop_requested = False
         self.best = -math.inf
@@ -38,6 +39,12 @@ class PlateauRule:
         self.recent: list[float] = []
         self.armed = False
         self.cool_start = self.cool_len = self.cool_f0 = None
+
+    @property
+    def min_progress(self) -> float:
+        """No plateau counts before this training progress: a grid SDF's coarse-to-fine schedule
+        (``train.coarse_to_fine_frac``) is still adding resolution."""
+        return float(self.cfg.train.coarse_to_fine_frac) if self.cfg.model.sdf_kind == "grid" else 0.0
 
     def restart(self) -> None:
         """Forget the evaluations so far (the shading model changed). Not during the
@@ -57,7 +64,7 @@ class PlateauRule:
         self.recent = (self.recent + [float(v)])[-window:]
         v = sum(self.recent) / len(self.recent)
         wall = rec.get("wall_s")
-        growing = progress is not None and progress < rc.plateau_min_progress
+        growing = progress is not None and progress < self.min_progress
         if len(self.recent) < window:   # a partial mean is noisier than the rule assumes: no bar yet
             self.best, self.best_wall, self.evals_since_best = -math.inf, wall, 0
             return None
@@ -75,7 +82,7 @@ class PlateauRule:
         long_enough = True
         if wall is not None and self.best_wall is not None:
             long_enough = (wall - self.best_wall) >= rc.plateau_min_frac * wall
-        if not (rc.enabled and not rc.iters_fixed and self.evals_since_best >= rc.plateau_patience
+        if not (self.cfg.train.adaptive and not self.iters_fixed and self.evals_since_best >= rc.plateau_patience
                 and long_enough and not self.plateaued):
             return None
         self.plateaued = True
@@ -99,7 +106,7 @@ class PlateauRule:
         ``f_now`` (unchanged before a plateau); requests the stop at the end of the cool-down."""
         if self.cool_start is None:
             return f_now
-        alpha = self.rc.lr_alpha
+        alpha = self.cfg.train.lr_alpha
         if self.cool_f0 is None:
             self.cool_f0 = f_now
         q = (wall - self.cool_start) / max(self.cool_len, 1e-9)

@@ -32,13 +32,16 @@ from __future__ import annotations
 import math
 
 from nepf_core.train.decisions import Decision
-from nepf_core.train.rules.config import RuleConfig
+from nepf_core.render.neus import foreground
 from nepf_core.train.rules.lobe_evidence import batch_lobe_evidence, lit_view_spread
 
 
 class SpecularRule:
-    def __init__(self, rc: RuleConfig) -> None:
-        self.rc = rc
+    def __init__(self, cfg) -> None:
+        """``cfg``: the run's :class:`~nepf_core.config.NePFConfig` (``rules``, ``train.adaptive``,
+        ``train.iters``, ``loss.w_albedo_flat``)."""
+        self.cfg, self.rc = cfg, cfg.rules
+        self.enabled = bool(cfg.train.adaptive)
         self.diffuse_streak = 0
         self.return_streak = 0
         self.highlight_vote: tuple[int, str] | None = None   # (step, reason) of the last residual vote
@@ -49,7 +52,7 @@ class SpecularRule:
         self.stats: dict = {}
 
     def wants_evidence(self, step: int) -> bool:
-        return self.rc.enabled and step > 0 and step % self.rc.check_every == 0
+        return self.enabled and step > 0 and step % self.rc.check_every == 0
 
     # -- evidence (at check steps, before decide) --
     def observe(self, step: int, model, out, rays, cams, specular_on: bool) -> None:
@@ -76,7 +79,7 @@ class SpecularRule:
         spread says the radiance is view-independent."""
         if self.view_spread is not None and self.view_spread < self.rc.view_spread_thr:
             return   # a diffuse fit's residual grows with brightness too
-        if self.rc.enabled and not specular_on and ratio > self.rc.highlight_ratio:
+        if self.enabled and not specular_on and ratio > self.rc.highlight_ratio:
             self.highlight_vote = (step, f"L_vol residual on the brightest 5% pixels is {ratio:.1f}x the median")
 
     # -- decisions --
@@ -87,16 +90,16 @@ class SpecularRule:
         return max(0.0, 1.0 - (step - self.fade_start) / max(self.rc.lobe_fade_steps, 1))
 
     def decide(self, step: int, out, specular_on: bool) -> list[Decision]:
-        """At a check with surface statistics in ``out.surf``: the lobe decision (and the albedo
-        flatness record that goes with it), or nothing."""
+        """At a check (``out.lobe``: the render's :class:`~nepf_core.render.surface.LobeSplit`): the
+        lobe decision (and the albedo flatness record that goes with it), or nothing."""
         rc = self.rc
-        if "specular" not in out.surf or step < min(rc.warmup_frac * rc.iters, rc.warmup_max_steps):
+        if out.lobe is None or step < min(rc.warmup_frac * self.cfg.train.iters, rc.warmup_max_steps):
             return []
-        surf_w = out.weight_sum.detach() > 0.5
+        surf_w = foreground(out.weight_sum)
         if surf_w.sum() < 8:
             return []
-        metal = float(out.surf["metallic"].detach()[surf_w].mean())
-        share = float(out.surf["specular"][surf_w].mean())
+        metal = float(out.surface.metallic.detach()[surf_w].mean())
+        share = float(out.lobe.share[surf_w].mean())
         spread = self.view_spread
         self.stats = {"surf_metallic": metal, "specular_share": share}
         if self.fit_err is not None:
@@ -143,11 +146,11 @@ class SpecularRule:
         if not on:
             self.fade_start = step
         out = [Decision("specular_lobe", on, reason, step)]
-        if self.rc.w_albedo_flat > 0:
+        if self.cfg.loss.w_albedo_flat > 0:
             out.append(Decision("albedo_flatness_prior", not on,
                                 "specular lobe back on: the images tie the light again" if on else
                                 f"specular lobe off: diffuse-only shading sees only albedo x light intensity, so slow "
-                                f"luminance variation goes to the light (weight {self.rc.w_albedo_flat:g})", step))
+                                f"luminance variation goes to the light (weight {self.cfg.loss.w_albedo_flat:g})", step))
         return out
 
     def kept_report(self, step: int) -> Decision:
@@ -163,7 +166,7 @@ class SpecularRule:
 
     def step_stats(self, specular_on: bool) -> dict:
         s = dict(self.stats)
-        if self.rc.enabled and not specular_on:
+        if self.enabled and not specular_on:
             s["lobe_return_votes"] = self.return_streak   # checks in a row that asked for the lobe back
         return s
 

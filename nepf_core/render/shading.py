@@ -1,0 +1,116 @@
+"""Stage 2 of the renderer: the heads (radiance, photon, material) and the BSDF at the selected samples.
+
+At a point ``x`` with unit normal ``n``, SDF features ``F`` and ray direction ``d``:
+
+    R(x, d, grad f, F)                                 radiance network (L_r)
+    l, I = photon(x, n, F);  c, r, m = material(x, n, F)
+    pbr  = f_bsdf(l, -d, n; c, r, m) I (n . l)^+        (L_vol, L_surf)
+
+Samples whose weight is at most ``RenderConfig.head_weight_threshold`` are not shaded (they
+contribute at most that weight each to any colour); each ray's max-weight sample always is.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from nepf_core import bsdf
+
+
+@dataclass(frozen=True)
+class Shading:
+    """The shading model in effect (a run's switches, :class:`nepf_core.train.run_state.RunState`).
+
+    ``specular``: evaluate the GGX lobe, ``f = f_d + f_s`` (Disney diffuse, :mod:`nepf_core.bsdf`).
+    Without it the surface is shaded as ``(1 - w m) f_d(c) + w f_s`` with
+    ``w = diffuse_metal_weight`` (:func:`nepf_core.bsdf.shade_fading_lobe`): 0 is a dielectric
+    diffuse (metallic ignored, no lobe evaluated); adaptivity fades ``w`` from 1 to 0 after
+    dropping the lobe, so the image does not jump from the full BSDF to ``f_d``."""
+
+    specular: bool = True
+    diffuse_metal_weight: float = 0.0
+
+
+@dataclass
+class PointShading:
+    """The heads and the BSDF at ``N`` points (fp32): ``pbr [N, 3]``, ``light_dir [N, 3]``,
+    ``intensity [N]``, ``albedo [N, 3]``, ``roughness [N]``, ``metallic [N]``, and in training
+    the material network's raw outputs ``logits [N, 5]`` (else None)."""
+
+    pbr: Tensor
+    light_dir: Tensor
+    intensity: Tensor
+    albedo: Tensor
+    roughness: Tensor
+    metallic: Tensor
+    logits: Tensor | None
+
+
+@dataclass
+class ShadedSamples(PointShading):
+    """:class:`PointShading` of the selected samples plus ``index [N]`` (into the ``P`` flattened
+    samples) and the radiance ``radiance [N, 3]``."""
+
+    index: Tensor = None
+    radiance: Tensor = None
+
+
+def _autocast(cfg, device: torch.device):
+    return torch.autocast(device_type=device.type, dtype=torch.bfloat16,
+                          enabled=cfg.amp_heads and device.type == "cuda")
+
+
+def shade_points(model, cfg, shading: Shading, xs: Tensor, vs: Tensor, ns: Tensor, fs: Tensor,
+                 unlit: Tensor | None, *, logits: bool = False) -> PointShading:
+    """Photon + material heads and the BSDF at ``N`` points: ``xs, vs, ns [N, 3]`` (position,
+    ray direction, unit normal), ``fs [N, F]`` SDF features, ``unlit [N]`` bool or None. With
+    ``cfg.unlit_albedo_stopgrad`` the colour error of an unlit point does not reach its albedo
+    (a pixel that received no light says nothing about the albedo). Without
+    ``shading.specular`` the fading lobe :func:`nepf_core.bsdf.shade_fading_lobe`."""
+    with _autocast(cfg, xs.device):
+        light_dir, intensity = model.photon(xs, ns, fs)
+        if logits:
+            albedo, rough, metal, z = model.material(xs, ns, fs, with_logits=True)
+        else:
+            (albedo, rough, metal), z = model.material(xs, ns, fs), None
+    light_dir, intensity = light_dir.float(), intensity.float()
+    albedo, rough, metal = albedo.float(), rough.float(), metal.float()
+    albedo_shade = albedo
+    if cfg.unlit_albedo_stopgrad and unlit is not None:
+        albedo_shade = torch.where(unlit[:, None], albedo.detach(), albedo)
+    if not shading.specular:  # lobe dropped: (1 - w m) f_d(c) + w f_s, w fading to 0 (a dielectric diffuse)
+        pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
+                                     intensity[:, None], shading.diffuse_metal_weight, lambertian=cfg.lambertian,
+                                     kind=cfg.bsdf_kind)
+    else:
+        pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
+                         intensity[:, None], lambertian=cfg.lambertian, specular=True, kind=cfg.bsdf_kind)
+    return PointShading(pbr, light_dir, intensity, albedo, rough, metal, None if z is None else z.float())
+
+
+def selected_samples(weights: Tensor, flat_max: Tensor, threshold: float) -> Tensor:
+    """``[N]`` long: the flattened samples that get heads, ``w_i > threshold`` and each ray's
+    max-weight sample ``flat_max [R]`` (every sample when ``threshold`` is 0)."""
+    if threshold > 0:
+        sel = weights.reshape(-1).detach() > threshold
+        sel[flat_max] = True  # the surface sample is always shaded
+        return sel.nonzero(as_tuple=True)[0]
+    return torch.arange(weights.numel(), device=weights.device)
+
+
+def shade_samples(model, cfg, shading: Shading, sw, normals: Tensor, sel_idx: Tensor,
+                  unlit_ray: Tensor | None, *, train: bool) -> ShadedSamples:
+    """Radiance, photon, material and the BSDF at the samples ``sel_idx`` of
+    :class:`~nepf_core.render.weights.SampleWeights` ``sw`` (``normals [P, 3]`` unit;
+    ``unlit_ray [R]`` or None)."""
+    S = sw.weights.shape[1]
+    xs, vs, ns, gs, fs = sw.pts[sel_idx], sw.dirs[sel_idx], normals[sel_idx], sw.grad[sel_idx], sw.feat[sel_idx]
+    with _autocast(cfg, xs.device):
+        rad = model.radiance(xs, vs, gs, fs)
+    unlit = unlit_ray[sel_idx // S] if unlit_ray is not None else None
+    p = shade_points(model, cfg, shading, xs, vs, ns, fs, unlit, logits=train)
+    return ShadedSamples(p.pbr, p.light_dir, p.intensity, p.albedo, p.roughness, p.metallic, p.logits,
+                         index=sel_idx, radiance=rad.float())
