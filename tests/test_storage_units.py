@@ -4,6 +4,11 @@ itself is tested against a real SeaweedFS server in tests/test_service_object_st
 
 from __future__ import annotations
 
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 from pydantic import ValidationError
 
@@ -59,3 +64,33 @@ def test_object_store_needs_a_shared_secret(tmp_path, monkeypatch):
     with pytest.raises(StartupError, match="NEPF_SECRET_KEY"):
         check_secret(s, storage)
     check_secret(Settings(data_dir=tmp_path, storage_url="s3://bucket/prefix", secret_key="k"), storage)
+
+
+REPO = Path(__file__).resolve().parent.parent
+#: what names a backend: its modules and its client library
+BACKEND_MODULES = ("jobstore.storage.local", "jobstore.storage.s3", "jobstore.storage.bucket",
+                   "jobstore.storage.remote", "boto3", "botocore")
+
+
+def test_only_the_storage_package_names_a_backend():
+    """The API, the worker and the rest of the job store import ``jobstore.storage`` alone (the
+    interface): none imports a backend module or the S3 client."""
+    offenders = []
+    for path in [*(REPO / "api").rglob("*.py"), *(REPO / "worker").rglob("*.py"), *(REPO / "jobstore").glob("*.py")]:
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            offenders += [f"{path.relative_to(REPO)}: {n}" for n in names if n.startswith(BACKEND_MODULES)]
+    assert offenders == []
+
+
+def test_the_embedded_default_needs_no_s3_client(tmp_path):
+    """Without NEPF_STORAGE_URL the API app and a worker's workspace come up without boto3 imported."""
+    code = ("import sys; from jobstore.settings import Settings; from api.main import create_app; "
+            f"s = Settings(data_dir={str(tmp_path)!r}); create_app(s, reconciler=False); "
+            "from jobstore.storage import open_storage; open_storage(s).workspace('0' * 32).checkpoint_step(); "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('boto3', 'botocore')))")
+    env = {"PATH": "/usr/bin:/bin", "HOME": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
