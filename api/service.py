@@ -60,6 +60,8 @@ class Service:
     job_cache: "JobCache" = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
+        if self.storage is None:
+            self.storage = open_storage(self.settings)
         if self.job_cache is None:
             self.job_cache = JobCache(self.settings.poll_cache_s)
 
