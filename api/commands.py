@@ -150,6 +150,14 @@ def serve_main(argv: list[str] | None = None) -> int:
         signal.signal(sig, _stop_on_signal)
     settings = _settings_with(args.data_dir)
     logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    from jobstore.storage import open_storage
+
+    from .service import StartupError, check_secret
+    try:
+        check_secret(settings, open_storage(settings))
+    except (StartupError, ValueError) as exc:
+        print(f"nepf serve: {exc}", file=sys.stderr)
+        return 2
     settings.data_path.mkdir(parents=True, exist_ok=True)
     from jobstore.engine import get_engine
     from jobstore.migrate import SchemaMismatch

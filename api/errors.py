@@ -98,3 +98,10 @@ async def http_error_handler(request: Request, exc: StarletteHTTPException):
     allow = ", ".join(allowed_methods(request.app.routes, scope["path"], scope.get("root_path", "")))
     body = ApiError(405, "method_not_allowed", f"{request.method} is not allowed here; allowed: {allow}")
     return JSONResponse(body.body(), status_code=405, headers={**(exc.headers or {}), "Allow": allow})
+
+
+async def storage_error_handler(_request: Request, exc: Exception) -> JSONResponse:
+    """The object store did not answer (``jobstore.storage.StorageUnavailable``): a 503 the client
+    may retry; the message names the store and its error, never the user's data."""
+    body = ApiError(503, "storage_unavailable", f"the object store is unavailable, try again later ({exc})").body()
+    return JSONResponse(body, status_code=503, headers={"Retry-After": "5"})

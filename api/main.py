@@ -16,10 +16,11 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from jobstore.engine import ping as ping_store
 from jobstore.queue import ping_broker
 from jobstore.reconcile import Reconciler
+from jobstore.storage import StorageUnavailable
 
 from .body_limit import BodyLimit, upload_body_cap, upload_too_large
 from .header_limit import HeaderLimit
-from .errors import ApiError, api_error_handler, http_error_handler, internal_error_handler
+from .errors import ApiError, api_error_handler, http_error_handler, internal_error_handler, storage_error_handler
 from .routes import artifacts, events, jobs
 from .schemas import Health
 from .service import Service
@@ -55,6 +56,7 @@ def create_app(settings: Optional[Settings] = None, *, reconciler: Optional[bool
     app.state.service = svc
     app.add_exception_handler(ApiError, api_error_handler)
     app.add_exception_handler(StarletteHTTPException, http_error_handler)
+    app.add_exception_handler(StorageUnavailable, storage_error_handler)
     app.add_exception_handler(Exception, internal_error_handler)
     app.add_middleware(BodyLimit, caps={("POST", "/jobs"): upload_body_cap(settings)},
                        error=lambda: upload_too_large(settings))
@@ -79,7 +81,7 @@ def create_app(settings: Optional[Settings] = None, *, reconciler: Optional[bool
         checks: dict = {}
         ok = True
         for name, fn in (("database", lambda: ping_store(settings.db_url)),
-                         ("broker", lambda: ping_broker(svc.celery))):
+                         ("broker", lambda: ping_broker(svc.celery)), ("storage", svc.storage.ping)):
             try:
                 await run_in_threadpool(fn)
                 checks[name] = "ok"

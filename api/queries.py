@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import datetime as dt
 import re
-from pathlib import Path
 from typing import Optional
 
 from sqlalchemy import func, select
@@ -66,10 +65,6 @@ def insert_job(Session: sessionmaker, job: Job) -> None:
     with Session() as s:
         s.add(job)
         s.commit()
-
-
-def run_dir(svc, job_id: str) -> Path:
-    return svc.settings.jobs_path / job_id / "run"
 
 
 def _utc(d):

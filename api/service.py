@@ -14,6 +14,7 @@ from sqlalchemy.orm import sessionmaker
 
 from jobstore.engine import session_factory
 from jobstore.queue import make_celery
+from jobstore.storage import Storage, open_storage
 
 from .auth import TokenVerifier, load_secret
 from jobstore.settings import Settings
@@ -54,23 +55,42 @@ class Service:
     verifier: TokenVerifier
     secret: bytes
     celery: Celery
+    storage: Storage = None  # type: ignore[assignment]
     reconciler: Optional[object] = None
     job_cache: "JobCache" = None  # type: ignore[assignment]
 
     def __post_init__(self) -> None:
+        if self.storage is None:
+            self.storage = open_storage(self.settings)
         if self.job_cache is None:
             self.job_cache = JobCache(self.settings.poll_cache_s)
 
     @classmethod
     def create(cls, settings: Settings) -> "Service":
+        storage = open_storage(settings)
+        check_secret(settings, storage)
         settings.data_path.mkdir(parents=True, exist_ok=True)
-        settings.jobs_path.mkdir(parents=True, exist_ok=True)
+        storage.setup()
         settings.uploads_path.mkdir(parents=True, exist_ok=True)
         Session = session_factory(settings.db_url)
         return cls(settings=settings, Session=Session,
                    verifier=TokenVerifier(Session, settings.auth_cache_s),
                    secret=load_secret(settings.data_path, settings.secret_key),
-                   celery=make_celery(settings, "nepf-api"))
+                   celery=make_celery(settings, "nepf-api"), storage=storage)
+
+
+class StartupError(RuntimeError):
+    """A setting that makes the service unusable; ``nepf serve`` prints it and exits 2."""
+
+
+def check_secret(settings: Settings, storage: Storage) -> None:
+    """When the job files are reachable from several machines, API processes may run on several:
+    a per-machine ``secret.key`` would make each refuse the others' SSE tickets, so the key must be
+    given (``NEPF_SECRET_KEY``)."""
+    if storage.multi_machine and not settings.secret_key:
+        raise StartupError("NEPF_STORAGE_URL is set but NEPF_SECRET_KEY is not: every API process must sign "
+                           "SSE tickets with the same key (e.g. NEPF_SECRET_KEY=$(python -c 'import secrets; "
+                           "print(secrets.token_urlsafe(32))'))")
 
 
 async def get_service(request: Request) -> Service:

@@ -29,7 +29,21 @@ class Settings(BaseSettings):
     broker_url: Optional[str] = Field(
         None, description="Celery broker (redis://...). Unset: embedded SQLite broker + local worker.")
     secret_key: Optional[str] = Field(
-        None, description="HMAC key for SSE tickets; default: random, kept in DATA_DIR/secret.key.")
+        None, description="HMAC key for SSE tickets; default: random, kept in DATA_DIR/secret.key "
+                          "(required with NEPF_STORAGE_URL: every API replica must share it).")
+    storage_url: Optional[str] = Field(
+        None, pattern=r"^s3://[^/]+(/.*)?$",
+        description="s3://bucket/prefix: datasets, checkpoints, metrics and artifacts live in this bucket "
+                    "(AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_DEFAULT_REGION); "
+                    "unset: in DATA_DIR/jobs.")
+    storage_sync_s: float = Field(2.0, gt=0, description="How often a worker uploads a job's new metrics to the store.")
+    storage_wait_s: float = Field(
+        3600.0, ge=0, description="How long a job waits for an unreachable object store (at its start, "
+                                  "and to store its results) before it fails.")
+    storage_presign_downloads: bool = Field(
+        False, description="Artifact downloads answer 307 to a presigned GET of the store instead of "
+                           "streaming through the API (the store must be reachable by the clients).")
+    storage_presign_ttl_s: int = Field(300, ge=1, le=604800, description="Lifetime of a presigned download URL.")
 
     # --- uploads -------------------------------------------------------------------------
     max_upload_mb: float = Field(2048.0, description="Cap on the uploaded zip (streamed to disk).")

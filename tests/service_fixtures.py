@@ -182,6 +182,9 @@ def fake_pipeline(request: JobRequest) -> dict:
             mf.write(json.dumps({"step": step, "wall_s": time.time() - t0, "kind": "sync", "psnr_r": 20 + step / 10,
                                  "psnr_surf": 19 + step / 10, "psnr_vol": 18 + step / 10}) + "\n")
             _write_atomic(ck, json.dumps({"step": step}))
+            mf.flush()
+            if callbacks is not None:   # as the core does: the worker keeps it (object store)
+                callbacks.checkpoint(step, str(ck))
         mf.flush()
         if callbacks is not None:
             callbacks.progress({"step": step, "total": total, "fraction": step / total, "stage": "train",
@@ -190,6 +193,8 @@ def fake_pipeline(request: JobRequest) -> dict:
                          "chamfer": 0.01, "albedo_psnr": 18.0}) + "\n")
     mf.close()
     _write_atomic(ck, json.dumps({"step": step}))
+    if callbacks is not None:
+        callbacks.checkpoint(step, str(ck))
     (run / "report.json").write_text(json.dumps({"decisions": [
         {"decision": "ray_batch", "value": 256, "reason": "fake", "step": 0}]}))
     (run / "previews").mkdir(exist_ok=True)

@@ -6,7 +6,7 @@ import json
 import os
 import random
 
-from api.metrics_index import MetricsIndex
+from jobstore.storage.metrics_index import MetricsIndex
 
 
 def plain(path, since, limit):

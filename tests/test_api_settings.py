@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import shlex
 from pathlib import Path
@@ -56,23 +57,30 @@ def test_compose_values_parse_as_settings(monkeypatch):
     for name in ("api", "worker"):
         env = compose()["services"][name]["environment"]
         for k, v in env.items():
-            # ${VAR:-default} -> default
-            monkeypatch.setenv(k, re.sub(r"\$\{[A-Z_]+:-([^}]*)\}", r"\1", str(v)))
+            # ${VAR:-default} / ${VAR-default} -> default; ${VAR:?message} (required) -> a value
+            v = re.sub(r"\$\{[A-Z_]+:\?[^}]*\}", "set-by-the-user", str(v))
+            monkeypatch.setenv(k, re.sub(r"\$\{[A-Z_]+:?-([^}]*)\}", r"\1", v))
         s = Settings()
         assert str(s.data_dir) == "/data" and s.broker_url == "redis://redis:6379/0"
-        assert not s.embedded and s.db_url.startswith("sqlite:////data/")
+        # no shared disk: the jobs in PostgreSQL, the files in the bucket, the signing key given
+        assert not s.embedded and s.db_url.startswith("postgresql+psycopg://")
+        assert s.storage_url == "s3://nepf/jobs" and s.secret_key
+        assert os.environ["AWS_ENDPOINT_URL"] == "http://seaweedfs:8333"
         assert s.visibility_timeout_s >= 24 * 3600
 
 
 def test_compose_services_and_commands():
     c = compose()
     svcs = c["services"]
-    assert {"redis", "api", "worker", "postgres"} <= set(svcs)
-    assert svcs["postgres"].get("profiles") == ["postgres"]          # optional
-    assert set(c["volumes"]) >= {"nepf-data", "redis-data", "pg-data"}
+    assert {"redis", "api", "worker", "postgres", "seaweedfs"} <= set(svcs)
+    assert "profiles" not in svcs["postgres"]                         # the shared job store
+    assert set(c["volumes"]) >= {"api-data", "worker-data", "seaweedfs-data", "redis-data", "pg-data"}
+    assert svcs["api"]["volumes"] == ["api-data:/data"] and svcs["worker"]["volumes"] == ["worker-data:/data"]
+    weed = svcs["seaweedfs"]["command"]
+    assert weed[0] == "mini" and "-master.telemetry=false" in weed and "-bucket=nepf" in weed
     for name in ("api", "worker"):
-        assert "nepf-data:/data" in svcs[name]["volumes"]               # one shared data dir
         assert svcs[name]["depends_on"]["redis"]["condition"] == "service_healthy"
+        assert svcs[name]["depends_on"]["seaweedfs"]["condition"] == "service_healthy"
     api_cmd, worker_cmd = svcs["api"]["command"], svcs["worker"]["command"]
     assert api_cmd[:2] == ["nepf", "serve"] and worker_cmd[:2] == ["nepf", "worker"]
     a = serve_parser().parse_args(api_cmd[2:])

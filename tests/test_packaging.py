@@ -24,7 +24,7 @@ except ModuleNotFoundError:  # Python 3.10
 
 REPO = Path(__file__).resolve().parent.parent
 SERVICE_TOP_MODULES = ("fastapi", "starlette", "uvicorn", "python_multipart", "pydantic_settings",
-                       "sqlalchemy", "alembic", "psycopg", "celery", "kombu", "redis")
+                       "sqlalchemy", "alembic", "psycopg", "celery", "kombu", "redis", "boto3", "botocore")
 
 
 def project() -> dict:

@@ -12,8 +12,9 @@ from .lifetime import exit_with_parent, hold_data_dir_lock
 
 def worker_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="nepf worker", description="Run a NePF Celery worker. It must share "
-                                "NEPF_DATABASE_URL and NEPF_DATA_DIR with the API; NEPF_BROKER_URL picks the "
-                                "broker (unset: the embedded SQLite broker in the data dir).")
+                                "NEPF_DATABASE_URL with the API, and NEPF_DATA_DIR unless NEPF_STORAGE_URL "
+                                "names an S3 bucket (then the data dir is its own scratch); NEPF_BROKER_URL "
+                                "picks the broker (unset: the embedded SQLite broker in the data dir).")
     p.add_argument("--queues", default="default,gpu", help="comma-separated queues to consume (default, gpu)")
     p.add_argument("--concurrency", type=int, default=1, help="jobs at once (default 1: one job per device)")
     p.add_argument("--pool", default=None, choices=["solo", "prefork", "threads"],

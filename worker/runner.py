@@ -15,6 +15,9 @@ Delivery semantics (see docs/SERVICE.md; each state change is one conditional UP
   ``completions`` counts it, so a job can never be completed twice.
 * **resume**: the pipeline gets ``JobRequest(resume=True)`` and continues from
   ``RUN/checkpoints/latest.pt``.
+* **files**: the job's workspace (:mod:`jobstore.storage`) gives the dataset and run folders to
+  train in, and keeps each checkpoint and the results where the API and the next worker find
+  them; the runner never knows where that is.
 * **pipeline**: one fixed signature, ``pipeline(JobRequest) -> summary dict``
   (``nepf_core/pipeline.py``); the setting ``NEPF_PIPELINE`` names it.
 """
@@ -35,9 +38,16 @@ from sqlalchemy.orm import sessionmaker
 from jobstore import state
 from jobstore.models import Job
 from jobstore.settings import Settings
+from jobstore.storage import Storage, open_storage
 from nepf_core.resume import checkpoint_step
 
+from .messages import human_error, scrub_server_paths  # noqa: F401 - importable from here too
+
 log = logging.getLogger("nepf.worker")
+
+
+#: how long a stopping worker waits for its last checkpoint to reach the object store
+SHUTDOWN_FLUSH_S = 20.0
 
 
 class LeaseLost(RuntimeError):
@@ -54,32 +64,15 @@ def worker_identity() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
-def human_error(exc: BaseException) -> str:
-    """A message a user can act on, for the job's ``error`` field."""
-    if hasattr(exc, "to_dict") and hasattr(exc, "message"):          # DatasetError
-        return f"invalid dataset: {exc}"
-    name = type(exc).__name__
-    text = str(exc).strip()
-    if "out of memory" in text.lower() or isinstance(exc, MemoryError):
-        return f"out of memory while training ({name}); try the 'fast' or 'tiny' preset or a smaller dataset"
-    if isinstance(exc, NotImplementedError):
-        return f"not available in this NePF version: {text or name}"
-    if isinstance(exc, FileNotFoundError):
-        return f"a file the job needs is missing: {text}"
-    return f"training failed: {name}: {text}" if text else f"training failed: {name}"
-
-
-def scrub_server_paths(message: str, settings: Settings) -> str:
-    """``message`` without the data dir's absolute path (``<data dir>`` instead): a job's error is
-    an API response, and an ``OSError`` names the file it failed on."""
-    return message.replace(str(settings.data_path), "<data dir>")
-
-
 class JobRunner:
     def __init__(self, settings: Settings, Session: sessionmaker, job_id: str,
                  worker_id: Optional[str] = None, pipeline: Optional[Callable[..., dict]] = None,
-                 shutdown: Optional[threading.Event] = None) -> None:
+                 shutdown: Optional[threading.Event] = None, storage: Optional[Storage] = None) -> None:
         self.settings = settings
+        # where the job's files are: the data dir, or a scratch copy of the object store's (jobstore.storage)
+        self.ws = (storage or open_storage(settings)).workspace(job_id)
+        self._notice: Optional[str] = None   # why the job waits (the store is unreachable), shown as its error
+        self._notice_dirty = False
         self.Session = Session
         self.job_id = job_id
         self.worker_id = worker_id or worker_identity()
@@ -108,7 +101,7 @@ class JobRunner:
         A job with a checkpoint in its run folder is claimed as ``stage: "resuming"`` at the
         checkpoint's step: the steps trained after it died with the last worker and are trained
         again, so that is where the progress stands (and ``metrics.jsonl`` is cut back to it)."""
-        self._resume_step = checkpoint_step(self.run_dir) or 0
+        self._resume_step = self.ws.checkpoint_step() or 0
         got = state.claim(self.Session, self.job_id, self.worker_id, lease_s=self.settings.lease_s,
                           max_deliveries=self.settings.max_deliveries, resume_step=self._resume_step)
         self._total = got.total
@@ -119,7 +112,9 @@ class JobRunner:
             prog = self._progress if self._progress_dirty else None
             self._progress_dirty = False
             first = self._first_step if not self._first_step_written else None
-        values: dict[str, Any] = {}
+            notice, dirty = self._notice, self._notice_dirty
+            self._notice_dirty = False
+        values: dict[str, Any] = {"error": notice} if dirty else {}
         if prog is not None:
             values.update({k: prog[k] for k in ("step", "total", "fraction", "stage", "eta_s", "wall_s") if k in prog})
         decisions = self._read_decisions()
@@ -188,14 +183,21 @@ class JobRunner:
             raise LeaseLost(f"job {self.job_id}: lease lost to another worker")
         return self._cancel or self._shutdown.is_set()
 
+    def _waiting_for_storage(self, reason: Optional[str]) -> None:
+        """The store is unreachable (``reason``), or answers again (None): say so in the job."""
+        with self._lock:
+            if reason is not None:
+                self._progress = {**(self._progress or {}), "stage": "waiting_for_storage",
+                                  "step": self._resume_step, "eta_s": None}
+                self._progress_dirty = True
+            self._notice = None if reason is None else scrub_server_paths(
+                f"waiting for the object store (retrying): {reason}", self.settings)
+            self._notice_dirty = True
+
     # ------------------------------------------------------------------ main
     @property
-    def job_dir(self) -> Path:
-        return self.settings.jobs_path / self.job_id
-
-    @property
     def run_dir(self) -> Path:
-        return self.job_dir / "run"
+        return self.ws.run_dir
 
     def job_request(self, cfg: dict):
         """The pipeline's :class:`~nepf_core.pipeline.JobRequest`: the job's config (preset,
@@ -205,10 +207,11 @@ class JobRunner:
         from nepf_core.pipeline import JobRequest
 
         s = self.settings
-        return JobRequest(data_dir=self.job_dir / "dataset", run_dir=self.run_dir,
+        return JobRequest(data_dir=self.ws.data_dir, run_dir=self.run_dir,
                           preset=cfg.get("preset") or s.default_preset, iters=cfg.get("iters"),
                           time_budget_s=cfg.get("time_budget_s"), device=s.device, resume=True,
-                          callbacks=FitCallbacks(on_progress=self.on_progress, should_stop=self.should_stop),
+                          callbacks=FitCallbacks(on_progress=self.on_progress, should_stop=self.should_stop,
+                                                 on_checkpoint=self.ws.on_checkpoint),
                           checkpoint_every=s.checkpoint_every,
                           texture_size=cfg.get("texture_size") or s.export_texture_size,
                           mesh_resolution=s.export_mesh_resolution,
@@ -224,24 +227,52 @@ class JobRunner:
         with self.Session() as s:
             job = s.get(Job, self.job_id)
             cfg = dict(job.config or {})
+        self.ws.may_write = lambda: not self._lease_lost   # a worker that lost the job writes nothing more
         hb = threading.Thread(target=self._heartbeat_loop, name=f"hb-{self.job_id[:8]}", daemon=True)
         hb.start()
-        status, error, result = "failed", None, None
-        interrupted = False   # stopped by a worker shutdown: back to the queue, not finished
+        try:
+            status, error, result, interrupted = self._run_pipeline(cfg)
+        except LeaseLost as exc:
+            log.warning("%s; stopping without recording a result", exc)
+            self.ws.close()
+            return "lease_lost"
+        finally:
+            self._stop_hb.set()
+            hb.join(timeout=10)
+            _release_device_memory()
+        try:
+            self._heartbeat_once()   # last progress/decisions
+        except Exception:  # noqa: BLE001
+            pass
+        self.ws.close()   # the background uploads stop; a scratch copy is dropped
+        if interrupted or (status == "cancelled" and self._shutdown.is_set() and not self._cancel):
+            return self.requeue()
+        return self.finish(status, error, result)
+
+    def _run_pipeline(self, cfg: dict) -> tuple[str, Optional[str], Optional[dict], bool]:
+        """Prepare the workspace, run the pipeline, store its results: ``(status, error, result,
+        interrupted)``; ``interrupted``: stopped by a worker shutdown (back to the queue)."""
+        status, error, result, interrupted = "failed", None, None, False
         try:
             from nepf_core.pipeline import load_pipeline  # torch-free module
 
             pipeline = self._pipeline or load_pipeline(self.settings.pipeline)
+            if not self.ws.prepare(self.should_stop, self._waiting_for_storage):
+                return "cancelled", None, None, False        # cancelled or stopped while the store was away
+            if self._notice is not None:
+                self._waiting_for_storage(None)
+            self._resume_step = checkpoint_step(self.run_dir) or 0
             self.run_dir.mkdir(parents=True, exist_ok=True)
             result = pipeline(self.job_request(cfg))
             status = (result or {}).get("status", "succeeded")
             if status not in ("succeeded", "cancelled", "failed"):
                 status = "succeeded"
-        except LeaseLost as exc:
-            log.warning("%s; stopping without recording a result", exc)
-            self._stop_hb.set()
-            hb.join(timeout=10)
-            return "lease_lost"
+            if status == "cancelled" and self._shutdown.is_set() and not self._cancel:
+                self.ws.flush(SHUTDOWN_FLUSH_S)               # its checkpoint goes back with the job
+            else:
+                self.ws.publish(self.settings.storage_wait_s)   # waits for an unreachable store
+        except LeaseLost:
+            raise
         except ShutdownRequested as exc:
             log.warning("%s", exc)
             interrupted = True
@@ -254,17 +285,9 @@ class JobRunner:
             else:
                 log.error("job %s failed: %s", self.job_id, "".join(traceback.format_exception(exc))[-4000:])
                 status, error = "failed", scrub_server_paths(human_error(exc), self.settings)
-        finally:
-            self._stop_hb.set()
-            hb.join(timeout=10)
-            _release_device_memory()
-        try:
-            self._heartbeat_once()   # last progress/decisions
-        except Exception:  # noqa: BLE001
-            pass
-        if interrupted or (status == "cancelled" and self._shutdown.is_set() and not self._cancel):
-            return self.requeue()
-        return self.finish(status, error, result)
+        if interrupted:
+            self.ws.flush(SHUTDOWN_FLUSH_S)
+        return status, error, result, interrupted
 
     def requeue(self) -> str:
         """Give the job back after a worker shutdown (:func:`jobstore.state.requeue`): the next

@@ -1,39 +1,36 @@
-"""``/jobs/{id}/artifacts``: the export manifest and its files. Which file a path names, and
-that it stays inside the run folder, is :func:`api.artifacts.safe_artifact_path`'s business."""
+"""``/jobs/{id}/artifacts``: the export manifest and its files, from wherever the storage layer
+keeps them (:mod:`jobstore.storage`; which path may name an artifact is its business too). A file
+on this machine is sent with ``FileResponse`` (Range, ETag); an object is streamed with the same
+headers or, with ``NEPF_STORAGE_PRESIGN_DOWNLOADS``, answered with a 307 to a short-lived
+presigned URL of that one object."""
 
 from __future__ import annotations
 
-import json
-from typing import Optional
+from fastapi import APIRouter, Request
+from fastapi.concurrency import iterate_in_threadpool
+from fastapi.responses import FileResponse, RedirectResponse, Response, StreamingResponse
 
-from fastapi import APIRouter
-from fastapi.responses import FileResponse
+from jobstore.storage import ArtifactRef
 
-from ..artifacts import ARTIFACT_MEDIA_TYPES, content_type_for, safe_artifact_path
+from ..artifacts import ARTIFACT_MEDIA_TYPES, content_type_for
 from ..deps import OwnerDep, ServiceDep
 from ..downloads import content_disposition
 from ..errors import not_found
-from ..queries import load_job, run_dir
+from ..queries import load_job
 from ..schemas import Artifact, ArtifactList, ErrorBody
 
 router = APIRouter(tags=["jobs"])
 ERRORS = {401: {"model": ErrorBody, "description": "Missing or invalid token"},
           404: {"model": ErrorBody, "description": "No such job for this owner"}}
-
-
-def read_manifest(svc, job_id: str) -> Optional[dict]:
-    try:
-        data = json.loads((run_dir(svc, job_id) / "manifest.json").read_text())
-        return data if isinstance(data, dict) else None
-    except (FileNotFoundError, json.JSONDecodeError, UnicodeDecodeError):
-        return None
+#: the request headers a streamed object answers (as FileResponse does for a local file)
+CONDITIONAL_HEADERS = ("range", "if-range", "if-none-match")
 
 
 @router.get("/jobs/{job_id}/artifacts", response_model=ArtifactList, responses=ERRORS,
             summary="The export manifest, with download URLs")
 def list_artifacts(job_id: str, svc: ServiceDep, owner: OwnerDep):
     job = load_job(svc, owner, job_id)
-    man = read_manifest(svc, job.id)
+    man = svc.storage.read_manifest(job.id)
     items = []
     for a in (man or {}).get("artifacts", []) or []:
         if not isinstance(a, dict) or not isinstance(a.get("path"), str):
@@ -50,13 +47,38 @@ def list_artifacts(job_id: str, svc: ServiceDep, owner: OwnerDep):
     "content": {t: {} for t in ARTIFACT_MEDIA_TYPES}, "description": "The file, with its content type"}},
     response_class=FileResponse, summary="Download one artifact (asset.glb, textures, previews, metrics...) as "
                                          "an attachment named <job name>-<artifact>; Range and ETag supported")
-def get_artifact(job_id: str, path: str, svc: ServiceDep, owner: OwnerDep):
+def get_artifact(job_id: str, path: str, request: Request, svc: ServiceDep, owner: OwnerDep):
     job = load_job(svc, owner, job_id)
-    target = safe_artifact_path(run_dir(svc, job.id), path)
-    if target is None:
+    ref = svc.storage.artifact(job.id, path)
+    if ref is None:
         raise not_found("artifact")
-    # FileResponse answers Range (206, If-Range) and sends ETag / Last-Modified; the name a browser
-    # or a script saves the file under: "<job name>-<artifact>" (api/downloads.py)
-    return FileResponse(target, media_type=content_type_for(target.name), filename=None,
-                        headers={"Cache-Control": "private, max-age=0",
-                                 "Content-Disposition": content_disposition(job.name, job.id, path)})
+    # a local file's type comes from its name with links resolved (as before the storage layer)
+    ctype = content_type_for(ref.path.name if ref.path is not None else path.rsplit("/", 1)[-1])
+    # the name a browser or a script saves the file under: "<job name>-<artifact>" (api/downloads.py)
+    headers = {"Cache-Control": "private, max-age=0",
+               "Content-Disposition": content_disposition(job.name, job.id, path)}
+    if ref.path is not None:
+        # FileResponse answers Range (206, If-Range) and sends ETag / Last-Modified
+        return FileResponse(ref.path, media_type=ctype, filename=None, headers=headers)
+    if svc.settings.storage_presign_downloads and ref.presign is not None:
+        url = ref.presign(svc.settings.storage_presign_ttl_s, headers["Content-Disposition"], ctype)
+        return RedirectResponse(url, status_code=307, headers={"Cache-Control": "no-store"})
+    return stream_object(ref, request, ctype, headers)
+
+
+def stream_object(ref: ArtifactRef, request: Request, ctype: str, headers: dict) -> Response:
+    """The object through this process: the store answers the conditional request headers (a 304
+    or 416 has no body), and the body is read in the thread pool so a slow store blocks no event loop."""
+    stream = ref.open({k: request.headers[k] for k in CONDITIONAL_HEADERS if k in request.headers})
+    headers = {**headers, **stream.headers}
+    if stream.status in (304, 416):
+        stream.close()
+        return Response(status_code=stream.status, headers=headers)
+
+    async def body():
+        try:
+            async for chunk in iterate_in_threadpool(stream.chunks):
+                yield chunk
+        finally:
+            stream.close()
+    return StreamingResponse(body(), status_code=stream.status, media_type=ctype, headers=headers)

@@ -13,12 +13,12 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.sse import EventSourceResponse, ServerSentEvent
 
 from jobstore.models import TERMINAL, Job
+from jobstore.storage import StorageUnavailable
 
 from ..auth import check_ticket, make_ticket
 from ..deps import CredsDep, OwnerDep, ServiceDep, owner_from_header
 from ..errors import ApiError
-from ..metrics_index import METRICS
-from ..queries import find_job, load_job, run_dir, to_public
+from ..queries import find_job, load_job, to_public
 from ..schemas import ErrorBody, Ticket
 
 router = APIRouter(tags=["jobs"])
@@ -72,6 +72,15 @@ def progress_state(job: Job) -> dict:
     return {k: pub[k] for k in ("status", "progress", "error", "decisions", "cancel_requested")}
 
 
+def new_metrics(svc, job_id: str, cursor: int) -> tuple[list[dict], int]:
+    """The records after ``cursor`` and the next cursor. While the object store does not answer
+    there are none: the stream goes on with the job's progress, and the records come once it is back."""
+    try:
+        return svc.storage.read_metrics(job_id, cursor, 1000)
+    except StorageUnavailable:
+        return [], cursor
+
+
 @router.get("/jobs/{job_id}/events", responses={**ERRORS, 200: {"content": {"text/event-stream": {}},
                                                                  "description": "Server-Sent Events"}},
             response_class=EventSourceResponse,
@@ -83,7 +92,6 @@ async def job_events(request: Request, svc: ServiceDep, job: Annotated[Job, Depe
     """``progress`` when the job's state changes, one ``metrics`` event per new record (its id is
     the metrics cursor, so ``Last-Event-ID`` resumes), ``end`` with the final status."""
     cursor = int(last_event_id) if last_event_id and last_event_id.isdigit() else (since or 0)
-    mpath = run_dir(svc, job.id) / "metrics.jsonl"
     yield ServerSentEvent(retry=RETRY_MS)
     last = None
     while not await request.is_disconnected():
@@ -91,7 +99,7 @@ async def job_events(request: Request, svc: ServiceDep, job: Annotated[Job, Depe
         if cur is None:
             yield _event("end", {"status": "deleted"})
             return
-        recs, nxt = await run_in_threadpool(METRICS.read, mpath, cursor, 1000)
+        recs, nxt = await run_in_threadpool(new_metrics, svc, job.id, cursor)
         for i, rec in enumerate(recs):
             yield _event("metrics", rec, cursor + i + 1)
         cursor = nxt

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
 from pathlib import Path
 from typing import Annotated, Optional
@@ -24,9 +23,7 @@ from jobstore.queue import enqueue
 from ..deps import OwnerDep, ServiceDep
 from ..errors import ApiError
 from ..job_config import job_config_schema, parse_config, resolve_holdout_every
-from ..metrics_index import METRICS
-from ..queries import (find_by_idempotency_key, get_job, insert_job, list_jobs as query_jobs, load_job, run_dir,
-                       to_public)
+from ..queries import find_by_idempotency_key, get_job, insert_job, list_jobs as query_jobs, load_job, to_public
 from ..schemas import ErrorBody, JobList, JobPublic, MetricsPage
 from ..uploads import check_images, dataset_root, receive_multipart, validate_dataset
 from ..zip_safety import MB, check_and_extract_zip
@@ -110,31 +107,39 @@ async def create_job(request: Request, svc: ServiceDep, owner: OwnerDep,
 
 async def _queue_job(svc, owner: str, root: Path, cfg: dict, summary: dict, idempotency_key: Optional[str],
                      sha256: str) -> JSONResponse:
-    """Move the validated dataset into a new job's folder, insert the job and send it."""
+    """Store the validated dataset as a new job's (:mod:`jobstore.storage`), insert the job and send
+    it. The dataset is stored before the row is inserted, so a job row always has its whole
+    dataset; a job that is not inserted leaves no files behind."""
     settings = svc.settings
     job_id = new_id()
-    job_dir = settings.jobs_path / job_id
-    job_dir.mkdir(parents=True)
     try:
-        os.rename(root, job_dir / "dataset")
-        (job_dir / "run").mkdir()
+        await run_in_threadpool(svc.storage.put_dataset, job_id, root)
         job = Job(id=job_id, owner=owner, name=cfg.get("name"), status="queued", config=cfg,
                   dataset={k: v for k, v in summary.items() if k != "ok"}, queue=settings.job_queue,
                   idempotency_key=idempotency_key, request_hash=sha256, created_at=utcnow(), attempt_log=[])
         await run_in_threadpool(insert_job, svc.Session, job)
     except IntegrityError:
         # a concurrent request with the same Idempotency-Key won the race
-        shutil.rmtree(job_dir, ignore_errors=True)
+        await run_in_threadpool(_delete_quietly, svc, job_id)
         existing = await run_in_threadpool(find_by_idempotency_key, svc.Session, owner, idempotency_key or "")
         if existing is None:
             raise
         return _replay(existing, sha256)
     except BaseException:
-        shutil.rmtree(job_dir, ignore_errors=True)
+        await run_in_threadpool(_delete_quietly, svc, job_id)
         raise
     await run_in_threadpool(_send, svc, job_id, settings.job_queue)
     job = await run_in_threadpool(get_job, svc.Session, job_id)
     return json_response(to_public(job), 202, {"Location": f"/jobs/{job_id}"})
+
+
+def _delete_quietly(svc, job_id: str) -> None:
+    """Remove the files of a job that was never inserted; the request fails or is replayed anyway,
+    so a store that does not answer is only logged."""
+    try:
+        svc.storage.delete_job(job_id)
+    except Exception as exc:  # noqa: BLE001
+        log.warning("could not delete the files of the rejected job %s: %s", job_id, exc)
 
 
 def _send(svc, job_id: str, queue: str) -> None:
@@ -183,7 +188,7 @@ def get_metrics(job_id: str, svc: ServiceDep, owner: OwnerDep,
                 since: Annotated[int, Query(ge=0, le=1_000_000_000)] = 0,
                 limit: Annotated[int, Query(ge=1, le=100_000)] = 10_000):
     job = load_job(svc, owner, job_id)
-    recs, nxt = METRICS.read(run_dir(svc, job.id) / "metrics.jsonl", since, limit)
+    recs, nxt = svc.storage.read_metrics(job.id, since, limit)
     return MetricsPage(records=recs, since=since, next_since=nxt, status=job.status)
 
 
@@ -204,9 +209,13 @@ def cancel_job(job_id: str, svc: ServiceDep, owner: OwnerDep):
                summary="Delete a finished job and its files")
 def delete_job(job_id: str, svc: ServiceDep, owner: OwnerDep):
     job = load_job(svc, owner, job_id)
+    if job.status not in TERMINAL:
+        raise ApiError(409, "job_active", "job is still queued or running; cancel it first")
+    # the files first (a finished job never runs again): a store that does not answer makes this a
+    # 503 and the job stays, instead of a job gone with its objects left behind
+    svc.storage.delete_job(job.id)
     if not state.delete_finished(svc.Session, job.id):
         raise ApiError(409, "job_active", "job is still queued or running; cancel it first")
     svc.job_cache.drop(job.id)
-    shutil.rmtree(svc.settings.jobs_path / job.id, ignore_errors=True)
     return Response(status_code=204)
 
