@@ -30,6 +30,16 @@ from pathlib import Path
 import numpy as np
 
 
+def training_image(gt) -> np.ndarray:
+    """``[V, H, W, 3]`` linear test images under every training light: ``rgba_linear`` (the shared
+    scenes), ``rgb_linear`` (``nepf make-scene``), or the sum of ``rgb_linear_per_light``."""
+    if "rgba_linear" in gt.files:
+        return gt["rgba_linear"][..., :3].astype(np.float32)
+    if "rgb_linear" in gt.files:
+        return gt["rgb_linear"].astype(np.float32)
+    return gt["rgb_linear_per_light"].sum(1).astype(np.float32)
+
+
 def main_light_direction(x: np.ndarray, n: np.ndarray, positions: np.ndarray, power: np.ndarray) -> np.ndarray:
     """``[..., 3]`` unit direction from each point ``x [..., 3]`` to the light that gives it the most
     irradiance ``I_k (n . l_k)^+ / d_k^2`` (GT normals ``n``), among ``positions [L, 3]`` with
@@ -56,7 +66,7 @@ def shading_rows(run: Path, scene_dir: Path, min_albedo: float = 0.5) -> dict:
     light_pos = np.asarray([lt["position_world"] for lt in lights], dtype=np.float64)            # [L, 3]
     light_power = np.asarray([np.mean(lt.get("intensity_rgb", [1.0])) for lt in lights])        # [L]
     fg = gt["alpha"] > FOREGROUND_ALPHA
-    img = gt["rgb_linear_per_light"][:, 0].astype(np.float32)
+    img = training_image(gt)
     lit = img.max(-1) >= unlit_threshold(img, fg, 0.01)   # the albedo-lit metric's pixels
     alb_gt, alb = gt["albedo"].astype(np.float32), pred["albedo"].astype(np.float32)
     keep_all = fg & lit
