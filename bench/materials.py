@@ -22,7 +22,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from statistics import mean, median
+from statistics import mean
 
 SUITE = ("sphere_diffuse", "torus_glossy", "spot_textured", "bunny_metal", "spot_svbrdf", "torus_stiff")
 """One scene of each kind: diffuse, glossy dielectric, textured, metal, metal beside dielectric, stiff."""
@@ -36,7 +36,7 @@ COLUMNS = (("relight_oracle_psnr", "oracle", 2), ("relight_psnr", "relight", 2),
 
 def suite_rows(results_dir: Path) -> dict[str, dict]:
     """``{scene: row}`` of a finished suite (``results.json``), each value the median over seeds."""
-    from bench.curves import final_test
+    from bench.curves import _median, final_test
     runs = json.loads((Path(results_dir) / "results.json").read_text())["runs"]
     per_scene: dict[str, list[dict]] = {}
     for r in runs:
@@ -47,11 +47,6 @@ def suite_rows(results_dir: Path) -> dict[str, dict]:
         row["test_psnr"], row["steps"] = final_test(r).get("test_psnr"), r.get("steps")
         per_scene.setdefault(r["scene"], []).append(row)
     return {s: {k: _median([row[k] for row in rows]) for k, _, _ in COLUMNS} for s, rows in per_scene.items()}
-
-
-def _median(xs):
-    xs = [x for x in xs if isinstance(x, (int, float))]
-    return median(xs) if xs else None
 
 
 def format_table(rows: dict[str, dict]) -> str:
