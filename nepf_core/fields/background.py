@@ -97,9 +97,20 @@ class BackgroundVolume(nn.Module):
 
     def forward(self, o: Tensor, d: Tensor, *, perturb: bool = False,
                 generator: torch.Generator | None = None, start: Tensor | None = None) -> Tensor:
-        """Background colour of each ray ``[R, 3]`` (linear, in [0, 1]). ``start [R]``: where the
-        object's region ends before the sphere does (its support plane,
-        :func:`nepf_core.render.sampling.object_segment`); the volume begins there."""
+        """Background colour of each ray ``[R, 3]`` (linear, in [0, 1]): ``sum_j w_j c_j`` of
+        :meth:`weights_and_colours`. ``start [R]``: where the object's region ends before the
+        sphere does (its support plane, :func:`nepf_core.render.sampling.object_segment`); the
+        volume begins there."""
+        w, rgb = self.weights_and_colours(o, d, perturb=perturb, generator=generator, start=start)
+        return (w[..., None] * rgb).sum(1)
+
+    def weights_and_colours(self, o: Tensor, d: Tensor, *, perturb: bool = False,
+                            generator: torch.Generator | None = None,
+                            start: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """``(w [R, n], c [R, n, 3])``: each sample's volume-rendering weight
+        ``w_j = T_j (1 - exp(-sigma_j delta_j))`` (``delta`` measured in the contracted space) and
+        colour, for :meth:`forward` and for measuring which samples carry weight
+        (``bench/ray_samples.py``)."""
         R, n = o.shape[0], self.cfg.n_samples
         t0 = sphere_exit(o, d) if start is None else torch.minimum(sphere_exit(o, d), start).clamp_min(1e-3)
         t = self.sample_distances(t0, perturb=perturb, generator=generator)   # [R, n]
@@ -111,4 +122,4 @@ class BackgroundVolume(nn.Module):
         delta = (c[:, 1:] - c[:, :-1]).norm(dim=-1)
         delta = torch.cat([delta, torch.full_like(delta[:, :1], 1e10)], -1)
         alpha = 1.0 - torch.exp(-sigma * delta)
-        return (weights_from_alpha(alpha)[..., None] * rgb).sum(1)
+        return weights_from_alpha(alpha), rgb
