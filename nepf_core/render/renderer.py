@@ -200,7 +200,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     return RenderOutput(rgb_r=rgb_r, rgb_vol=rgb_vol, rgb_surf=rgb_surf, weight_sum=weight_sum, w_max=sw.w_max,
                         depth=(sw.weights * sw.t_eval).sum(-1), eikonal=sw.eikonal, hessian=sw.hessian,
                         surface=surface, lobe=lobe, background=bg, n_samples=int(P),
-                        n_head_evals=int(sel.index.shape[0]), inv_s=float(sw.inv_s.detach()),
+                        n_head_evals=int(sel.index.shape[0]), inv_s=sw.inv_s.detach(),
                         eikonal_weight=eik_w)
 
 

@@ -243,12 +243,9 @@ class TrainingRun:
                                 background=rs.background, background_rays=background_rays, surface_points=points)
         loss = losses["loss"] = total_loss(losses, loss_cfg)
         self.optimizer.zero_grad(set_to_none=True)
-        ok = bool(torch.isfinite(loss))
-        if ok:
-            loss.backward()
-            gn = torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip if tc.grad_clip > 0 else float("inf"))
-            ok = bool(torch.isfinite(gn))
-        if ok:
+        loss.backward()
+        gn = torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip if tc.grad_clip > 0 else float("inf"))
+        if bool(torch.isfinite(loss.detach()) & torch.isfinite(gn)):
             self.optimizer.step()
             if self.ema is not None:
                 self.ema.update(model)
@@ -291,7 +288,7 @@ class TrainingRun:
         dt = max(self.clock.wall() - self._t_log, 1e-9)   # training time: evaluations and checkpoints are not steps
         rec = {"step": self.step, "wall_s": round(self.clock.wall(), 3), "kind": "train"}
         rec.update({k: float(v.detach()) for k, v in losses.items()})
-        rec.update({"inv_s": out.inv_s, "lr": self.optimizer.param_groups[0]["lr"], "batch_rays": len(rays),
+        rec.update({"inv_s": float(out.inv_s), "lr": self.optimizer.param_groups[0]["lr"], "batch_rays": len(rays),
                     "background_only_rays": self._n_background_rays, "rays_per_s": self._n_rays / dt,
                     "samples_per_s": self._n_samples / dt,
                     "head_evals": out.n_head_evals, "nonfinite_steps": self.nonfinite,
