@@ -35,6 +35,11 @@ def test_measure_counts_within_the_samples_of_each_kind():
     # a sample over 1e-3 is over the heads' 1e-4 threshold: evaluated heads include every carrier
     assert row["head_evals"] >= row["object_carrying"]
     assert 0.0 <= row["object_cover"] <= 1.0 + 1e-6
+    # the cover is the renderer's own opacity on the same rays (an independent path through render_rays)
+    from nepf_core.render.renderer import render_rays
+    with torch.no_grad():
+        out = render_rays(model, rays, cfg.render, train=False)
+    assert abs(row["object_cover"] - float(out.weight_sum.mean())) < 1e-5
     n = model.background.cfg.n_samples
     assert row["background_samples"] == n
     assert 0 <= row["background_carrying"] <= n and 0 <= row["background_for_99pct"] <= n

@@ -126,7 +126,9 @@ class RenderOutput:
     ``rgb_r`` and ``rgb_vol`` behind the object."""
     n_samples: int = 0
     n_head_evals: int = 0
-    inv_s: float = 0.0
+    inv_s: Tensor | float = 0.0
+    """NeuS's sharpness ``s`` of this render: a 0-d tensor (detached) so that a training step
+    does not sync the host for it; a record reads it with ``float()`` when it writes."""
     eikonal_weight: Tensor | None = None
     """``[P]``: the importance weight ``RayBatch.weight`` of the ray each ``eikonal`` sample
     lies on (None when the batch has no weights): the eikonal mean is then weighted like the
