@@ -13,6 +13,7 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_mask  = w_mask * BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)
     L_bsm   = w_brdf_smooth * mean (|r(x*) - r(x* + eps)| + |m(x*) - m(x* + eps)|)   (off in paper)
     L_range = w_material_range * mean_surf mean_k relu(|z_k| - z_max)   (z: material logits; off in paper)
+    L_crange = w_colour_range * mean relu(|z| - z_c)   (z: radiance / background colour logits; off in paper)
     L_unseen = w_metallic_unseen * mean_lit m (1 - s)   (s: the lobe's share of L_surf, stop-grad; off in paper)
     L_bg    = w_r * mean_{mask = 0} | srgb(L_r) - srgb(L_gt) |   (masks and a background model)
     L_points = w_surface_points * mean_p |f(p)|   (captures without masks, train/surface_points.py)
@@ -94,6 +95,21 @@ class LossConfig:
     the images say later: spot_textured's roughness sat at exactly 0 and torus_glossy's at 1 and
     its blue albedo at 1 (docs/FAST.md, "Materials: saturation and the unseen lobe")."""
     material_logit_max: float = 3.0
+    w_colour_range: float = 0.0
+    """Keep the colour logits (the radiance network's and the background's, every value a training
+    render evaluated, :attr:`RenderOutput.colour_logits`) within ``|z| <= colour_logit_max``:
+    ``mean relu(|z| - z_c)``. A pixel that is exactly black (a rendered background without masks) or
+    white is reached by the sigmoid only at ``z = -/+ inf``, and the L1 colour loss pushes toward
+    it with the same force however close it is. Adam then carries the shared network's logits far
+    past any finite value (to ~-55 in 300 steps in tests/test_colour_range.py), where
+    ``sigmoid' ~ e^-55``: every colour of the network is black, no pixel's error reaches it any
+    more, and NeuS, trained by colour alone, lets the surface go to fog (bench/RESULTS.md, "The
+    collapse, traced"). Past ``z_c`` this term's gradient is constant, so Adam brings the logits
+    back at full speed. A plain sigmoid with a wider range (mip-NeRF) was tried and does not stop
+    the overshoot (docs/TRIED.md)."""
+    colour_logit_max: float = 9.0
+    """``z_c`` of ``w_colour_range``: sigmoid(-9) = 1.2e-4 linear is sRGB 0.0016, under half of one
+    8-bit level, so any colour an image can show lies inside."""
     """``z_max`` of ``w_material_range``: sigmoid(3) = 0.953, so every channel keeps a slope of at
     least 0.045; roughness >= 0.047 still gives a near-mirror glTF lobe (alpha = 3e-3)."""
     w_metallic_unseen: float = 0.0
@@ -303,6 +319,11 @@ def loss_material_range(b: LossBatch) -> Tensor:
     return mean_where((z.abs() - b.cfg.material_logit_max).clamp_min(0.0).mean(-1), b.on_surf)
 
 
+def loss_colour_range(b: LossBatch) -> Tensor:
+    z = _needs(b.out.colour_logits, "w_colour_range", "a training render (colour logits)")
+    return (z.abs() - b.cfg.colour_logit_max).clamp_min(0.0).mean() if z.numel() else b.zero
+
+
 def loss_metallic_unseen(b: LossBatch) -> Tensor:
     lobe = _needs(b.out.lobe, "w_metallic_unseen", "a render with SurfaceRequest(lobe_split=True)")
     return mean_where(b.out.surface.metallic * (1.0 - lobe.share.detach()), b.lit)
@@ -339,6 +360,7 @@ LOSS_TERMS: tuple[LossTerm, ...] = (
     LossTerm("loss_albedo_flat", "w_albedo_flat", loss_albedo_flat),
     LossTerm("loss_brdf_smooth", "w_brdf_smooth", loss_brdf_smooth),
     LossTerm("loss_material_range", "w_material_range", loss_material_range),
+    LossTerm("loss_colour_range", "w_colour_range", loss_colour_range),
     LossTerm("loss_metallic_unseen", "w_metallic_unseen", loss_metallic_unseen, lobe_split=True),
     LossTerm("loss_surface_points", "w_surface_points", loss_surface_points, optional=True),
 )

@@ -84,7 +84,8 @@ def test_loss_weights(built):
     assert (lo.w_eikonal, lo.w_mask) == (0.1, 0.1)  # NeuS
     assert lo.w_hessian > 0  # the paper has the term (no weight given)
     # nothing the paper does not have
-    for name in ("w_albedo_smooth", "w_albedo_flat", "w_brdf_smooth", "w_material_range", "w_metallic_unseen"):
+    for name in ("w_albedo_smooth", "w_albedo_flat", "w_brdf_smooth", "w_material_range", "w_colour_range",
+                 "w_metallic_unseen"):
         assert getattr(lo, name) == 0.0, name
 
 

@@ -96,21 +96,25 @@ class BackgroundVolume(nn.Module):
         return 1.0 / ((1.0 - u) / t0[:, None] + u / far[:, None])
 
     def forward(self, o: Tensor, d: Tensor, *, perturb: bool = False,
-                generator: torch.Generator | None = None, start: Tensor | None = None) -> Tensor:
+                generator: torch.Generator | None = None, start: Tensor | None = None,
+                with_logits: bool = False):
         """Background colour of each ray ``[R, 3]`` (linear, in [0, 1]): ``sum_j w_j c_j`` of
         :meth:`weights_and_colours`. ``start [R]``: where the object's region ends before the
         sphere does (its support plane, :func:`nepf_core.render.sampling.object_segment`); the
-        volume begins there."""
-        w, rgb = self.weights_and_colours(o, d, perturb=perturb, generator=generator, start=start)
-        return (w[..., None] * rgb).sum(1)
+        volume begins there. With ``with_logits`` also the colour logits of every sample,
+        ``z [R * n, 3]`` (for :attr:`nepf_core.losses.LossConfig.w_colour_range`)."""
+        w, rgb, z = self.weights_and_colours(o, d, perturb=perturb, generator=generator, start=start,
+                                             with_logits=True)
+        c = (w[..., None] * rgb).sum(1)
+        return (c, z) if with_logits else c
 
     def weights_and_colours(self, o: Tensor, d: Tensor, *, perturb: bool = False,
                             generator: torch.Generator | None = None,
-                            start: Tensor | None = None) -> tuple[Tensor, Tensor]:
+                            start: Tensor | None = None, with_logits: bool = False):
         """``(w [R, n], c [R, n, 3])``: each sample's volume-rendering weight
         ``w_j = T_j (1 - exp(-sigma_j delta_j))`` (``delta`` measured in the contracted space) and
         colour, for :meth:`forward` and for measuring which samples carry weight
-        (``bench/ray_samples.py``)."""
+        (``bench/ray_samples.py``); with ``with_logits`` also the colours' logits ``z [R * n, 3]``."""
         R, n = o.shape[0], self.cfg.n_samples
         t0 = sphere_exit(o, d) if start is None else torch.minimum(sphere_exit(o, d), start).clamp_min(1e-3)
         t = self.sample_distances(t0, perturb=perturb, generator=generator)   # [R, n]
@@ -118,8 +122,9 @@ class BackgroundVolume(nn.Module):
         h = self.density(self.encoding(c.reshape(-1, 3)))
         sigma = F.softplus(h[:, 0]).reshape(R, n)
         d_enc = positional_encoding(d, self.cfg.n_freqs_d)[:, None, :].expand(R, n, -1).reshape(R * n, -1)
-        rgb = torch.sigmoid(self.color(torch.cat([h[:, 1:], d_enc], -1))).reshape(R, n, 3)
+        z = self.color(torch.cat([h[:, 1:], d_enc], -1))
+        rgb = torch.sigmoid(z).reshape(R, n, 3)
         delta = (c[:, 1:] - c[:, :-1]).norm(dim=-1)
         delta = torch.cat([delta, torch.full_like(delta[:, :1], 1e10)], -1)
         alpha = 1.0 - torch.exp(-sigma * delta)
-        return weights_from_alpha(alpha), rgb
+        return (weights_from_alpha(alpha), rgb, z) if with_logits else (weights_from_alpha(alpha), rgb)

@@ -48,10 +48,13 @@ class RadianceField(nn.Module):
         self.mlp = build_mlp(MLPConfig(in_dim=d_in, out_dim=3, width=cfg.width, depth=cfg.depth,
                                        activation=cfg.activation))
 
-    def forward(self, x: Tensor, v: Tensor, n: Tensor, feature: Tensor) -> Tensor:
+    def forward(self, x: Tensor, v: Tensor, n: Tensor, feature: Tensor, *, with_logits: bool = False):
+        """``rgb [N, 3]``; with ``with_logits`` also ``z [N, 3]`` before the sigmoid (for
+        :attr:`nepf_core.losses.LossConfig.w_colour_range`)."""
         h = torch.cat([positional_encoding(x, self.cfg.n_freqs_x),
                        positional_encoding(v, self.cfg.n_freqs_v), n, feature], dim=-1)
-        return torch.sigmoid(self.mlp(h))
+        z = self.mlp(h)
+        return (torch.sigmoid(z), z) if with_logits else torch.sigmoid(z)
 
 
 def direction_from_angles(rho: Tensor, phi: Tensor) -> Tensor:

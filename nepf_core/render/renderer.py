@@ -134,6 +134,10 @@ class RenderOutput:
     lies on (None when the batch has no weights): the eikonal mean is then weighted like the
     mask loss, so a batch thinned by :meth:`nepf_core.train.rules.empty_rays.EmptyRayRule.thin` keeps
     its expectation."""
+    colour_logits: Tensor | None = None
+    """``[K, 3]`` (training renders): the raw outputs before the sigmoid of every colour this render
+    evaluated, the radiance network's at the shaded samples and the background's at its samples,
+    for :attr:`nepf_core.losses.LossConfig.w_colour_range`. None when not training."""
 
 
 def sample_weights(model, rays: RayBatch, cfg: RenderConfig, near: Tensor, far: Tensor, *, train: bool,
@@ -182,8 +186,11 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     rgb_vol = (w3 * pbr_full.reshape(R, -1, 3)).sum(1)
     rgb_surf = pbr_full[flat_max]
     bg = None
+    colour_logits = [sel.radiance_logits] if train else []
     if getattr(model, "background", None) is not None:
-        bg = model.background(o, d, perturb=train and cfg.perturb, generator=generator, start=cut)
+        bg, bg_z = model.background(o, d, perturb=train and cfg.perturb, generator=generator, start=cut,
+                                    with_logits=True)
+        colour_logits += [bg_z] if train else []
         rgb_r = rgb_r + (1.0 - weight_sum)[:, None] * bg
         rgb_vol = rgb_vol + (1.0 - weight_sum)[:, None] * bg
 
@@ -203,12 +210,13 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
                         depth=(sw.weights * sw.t_eval).sum(-1), eikonal=sw.eikonal, hessian=sw.hessian,
                         surface=surface, lobe=lobe, background=bg, n_samples=int(P),
                         n_head_evals=int(sel.index.shape[0]), inv_s=sw.inv_s.detach(),
-                        eikonal_weight=eik_w)
+                        eikonal_weight=eik_w, colour_logits=torch.cat(colour_logits) if colour_logits else None)
 
 
 def render_background_only(model, rays: RayBatch, cfg: RenderConfig, *, train: bool,
-                           generator: torch.Generator | None = None) -> Tensor:
-    """``[B, 3]`` linear colour of rays that meet no occupied cell: ``C = C_bg``.
+                           generator: torch.Generator | None = None, with_logits: bool = False):
+    """``[B, 3]`` linear colour of rays that meet no occupied cell: ``C = C_bg`` (with
+    ``with_logits`` also the background's colour logits, as :attr:`RenderOutput.colour_logits`).
 
     Such a ray's SDF weights sum to at most ~e^{-k_s} (:mod:`nepf_core.render.occupancy`), so
     ``C = sum_i w_i c_i + (1 - sum_i w_i) C_bg`` is ``C_bg`` up to that bound, for the radiance
@@ -217,4 +225,4 @@ def render_background_only(model, rays: RayBatch, cfg: RenderConfig, *, train: b
     Needs ``model.background``."""
     _, _, _, cut = object_segment(rays.origins, rays.directions, model.cfg.object_halfspace)
     return model.background(rays.origins, rays.directions, perturb=train and cfg.perturb, generator=generator,
-                            start=cut)
+                            start=cut, with_logits=with_logits)

@@ -52,10 +52,11 @@ class PointShading:
 @dataclass
 class ShadedSamples(PointShading):
     """:class:`PointShading` of the selected samples plus ``index [N]`` (into the ``P`` flattened
-    samples) and the radiance ``radiance [N, 3]``."""
+    samples), the radiance ``radiance [N, 3]`` and, in training, its logits ``radiance_logits [N, 3]``."""
 
     index: Tensor = None
     radiance: Tensor = None
+    radiance_logits: Tensor | None = None
 
 
 def _autocast(cfg, device: torch.device):
@@ -109,8 +110,8 @@ def shade_samples(model, cfg, shading: Shading, sw, normals: Tensor, sel_idx: Te
     S = sw.weights.shape[1]
     xs, vs, ns, gs, fs = sw.pts[sel_idx], sw.dirs[sel_idx], normals[sel_idx], sw.grad[sel_idx], sw.feat[sel_idx]
     with _autocast(cfg, xs.device):
-        rad = model.radiance(xs, vs, gs, fs)
+        rad, rad_z = model.radiance(xs, vs, gs, fs, with_logits=True)
     unlit = unlit_ray[sel_idx // S] if unlit_ray is not None else None
     p = shade_points(model, cfg, shading, xs, vs, ns, fs, unlit, logits=train)
     return ShadedSamples(p.pbr, p.light_dir, p.intensity, p.albedo, p.roughness, p.metallic, p.logits,
-                         index=sel_idx, radiance=rad.float())
+                         index=sel_idx, radiance=rad.float(), radiance_logits=rad_z.float() if train else None)

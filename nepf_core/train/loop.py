@@ -235,8 +235,10 @@ class TrainingRun:
                           request=batch.request, shading=rs.shading())
         background_rays = None   # the misses left out still show the background: it alone renders them
         if left_out is not None:
-            background_rays = (render_background_only(model, left_out, self.run_cfg.render, train=True,
-                                                      generator=self.gen), left_out)
+            c_bg, z_bg = render_background_only(model, left_out, self.run_cfg.render, train=True, generator=self.gen,
+                                                with_logits=True)
+            background_rays = (c_bg, left_out)
+            out.colour_logits = torch.cat([out.colour_logits, z_bg])
         self._n_background_rays = 0 if background_rays is None else len(left_out)
         points = None if self.surface_points is None else (lambda: self.surface_points.loss(model, self.gen))
         losses = compute_losses(out, rays, loss_cfg, use_mask=rs.use_mask_loss, specular=rs.specular,
