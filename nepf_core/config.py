@@ -173,7 +173,9 @@ def fast() -> NePFConfig:
     toward ``n`` and moves the shading into the albedo (docs/FAST.md, "The light field's direction
     terms"). Without masks, the points triangulated in front of the support plane pull the SDF's
     zero level set onto them (``w_surface_points``, Geo-NeuS; docs/ARCHITECTURE.md, the object
-    frame). Options tried for this preset and not adopted: docs/TRIED.md."""
+    frame). The colour networks' logits stay within ±9 (``w_colour_range``): a black background
+    without masks otherwise saturates them for good (docs/FAST.md, "Colours out of saturation").
+    Options tried for this preset and not adopted: docs/TRIED.md."""
     head = HeadConfig(width=64, depth=2, activation="relu", n_freqs_v=4)
     return NePFConfig(
         name="fast",
