@@ -98,3 +98,34 @@ def test_loss_term_value_is_hand_worked():
 def test_presets():
     assert fast().loss.w_colour_range > 0      # the fast preset keeps its colours out of saturation
     assert LossConfig().w_colour_range == 0     # the paper's losses are as the paper has them
+
+
+def test_fit_without_masks_holds_the_logits_of_the_rays_the_background_renders_alone(tmp_path):
+    """In a fast fit without masks the range prior sees every colour the step evaluated: the
+    heads' samples, the background's samples of the SDF batch, and those of the misses the
+    empty-ray rule left out and the background rendered alone."""
+    from nepf_core.data.detect import load_scene
+    from nepf_core.data.synth import make_scene
+    from nepf_core.fields.sdf_grid import GridSDFConfig
+    from nepf_core.train import fit
+    from nepf_core.train.hooks import TrainHooks
+
+    make_scene(tmp_path / "s", n_views=6, n_test=0, resolution=24, supersample=1, fov_deg=75.0, masks=False,
+               write_mesh=False)
+    cfg = fast()
+    cfg.model.sdf_grid = GridSDFConfig(base_resolution=8, max_resolution=32)
+    cfg.model.occupancy_resolution = 16
+    cfg.train.iters, cfg.train.batch_rays, cfg.train.log_every = 8, 64, 2
+    cfg.train.sync_every, cfg.train.eval_every_s, cfg.train.occupancy_every = 0, 0.0, 2
+
+    class Counts(TrainHooks):
+        rows = []
+
+        def after_step(self, run, step, out, losses):
+            n_bg = run.model.background.cfg.n_samples
+            rays = out.weight_sum.shape[0] + run._n_background_rays
+            self.rows.append((out.colour_logits.shape[0], out.n_head_evals + rays * n_bg, run._n_background_rays))
+
+    fit(load_scene(tmp_path / "s" / "dtu"), tmp_path / "run", cfg, device="cpu", hooks=[Counts()])
+    assert Counts.rows and all(got == want for got, want, _ in Counts.rows)
+    assert any(b > 0 for _, _, b in Counts.rows)   # some steps did render misses by the background alone
