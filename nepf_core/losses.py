@@ -95,6 +95,8 @@ class LossConfig:
     the images say later: spot_textured's roughness sat at exactly 0 and torus_glossy's at 1 and
     its blue albedo at 1 (docs/FAST.md, "Materials: saturation and the unseen lobe")."""
     material_logit_max: float = 3.0
+    """``z_max`` of ``w_material_range``: sigmoid(3) = 0.953, so every channel keeps a slope of at
+    least 0.045; roughness >= 0.047 still gives a near-mirror glTF lobe (alpha = 3e-3)."""
     w_colour_range: float = 0.0
     """Keep the colour logits (the radiance network's and the background's, every value a training
     render evaluated, :attr:`RenderOutput.colour_logits`) within ``|z| <= colour_logit_max``:
@@ -103,15 +105,13 @@ class LossConfig:
     it with the same force however close it is. Adam then carries the shared network's logits far
     past any finite value (to ~-55 in 300 steps in tests/test_colour_range.py), where
     ``sigmoid' ~ e^-55``: every colour of the network is black, no pixel's error reaches it any
-    more, and NeuS, trained by colour alone, lets the surface go to fog (bench/RESULTS.md, "The
-    collapse, traced"). Past ``z_c`` this term's gradient is constant, so Adam brings the logits
+    more, and NeuS, trained by colour alone, lets the surface go to fog (bench/RESULTS.md
+    v28). Past ``z_c`` this term's gradient is constant, so Adam brings the logits
     back at full speed. A plain sigmoid with a wider range (mip-NeRF) was tried and does not stop
     the overshoot (docs/TRIED.md)."""
     colour_logit_max: float = 9.0
     """``z_c`` of ``w_colour_range``: sigmoid(-9) = 1.2e-4 linear is sRGB 0.0016, under half of one
     8-bit level, so any colour an image can show lies inside."""
-    """``z_max`` of ``w_material_range``: sigmoid(3) = 0.953, so every channel keeps a slope of at
-    least 0.045; roughness >= 0.047 still gives a near-mirror glTF lobe (alpha = 3e-3)."""
     w_metallic_unseen: float = 0.0
     """Metallic only where its lobe is seen: ``mean_lit m (1 - s)`` with ``s`` the specular lobe's
     share of the shaded surface colour (stop-grad, :attr:`RenderOutput.lobe`), over lit surface rays.
@@ -314,14 +314,20 @@ def loss_brdf_smooth(b: LossBatch) -> Tensor:
     return mean_where((s.roughness - j.roughness).abs() + (s.metallic - j.metallic).abs(), b.on_surf)
 
 
+def logit_excess(z: Tensor, z_max: float) -> Tensor:
+    """``relu(|z| - z_max)``, elementwise: how far a logit lies past the range a sigmoid still
+    trains in (the range priors ``w_material_range`` and ``w_colour_range``)."""
+    return (z.abs() - z_max).clamp_min(0.0)
+
+
 def loss_material_range(b: LossBatch) -> Tensor:
     z = _needs(b.out.surface.material_logits, "w_material_range", "a training render (material logits)")
-    return mean_where((z.abs() - b.cfg.material_logit_max).clamp_min(0.0).mean(-1), b.on_surf)
+    return mean_where(logit_excess(z, b.cfg.material_logit_max).mean(-1), b.on_surf)
 
 
 def loss_colour_range(b: LossBatch) -> Tensor:
     z = _needs(b.out.colour_logits, "w_colour_range", "a training render (colour logits)")
-    return (z.abs() - b.cfg.colour_logit_max).clamp_min(0.0).mean() if z.numel() else b.zero
+    return logit_excess(z, b.cfg.colour_logit_max).mean() if z.numel() else b.zero
 
 
 def loss_metallic_unseen(b: LossBatch) -> Tensor:
