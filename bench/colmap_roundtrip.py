@@ -9,6 +9,11 @@ For a shared scene (``SCENE_DIR/input/dtu``, ``SCENE_DIR/gt``; a generated one h
 2. ``DIR/colmap_txt``: the same cameras and images as a COLMAP text model
    (:func:`nepf_core.data.convert.write_colmap`; no points: the object region comes from the
    points triangulated from the images, as for a COLMAP model without ``points3D``);
+   ``DIR/colmap_points_txt`` (form ``colmap_points``): the same model with ``points3D`` as
+   COLMAP's structure from motion leaves them on a textured object, here
+   :func:`surface_points`: points on the true mesh that face at least two training cameras (the
+   DTU form's ``scale_mat`` is the information a COLMAP model does not carry; its points are the
+   nearest thing it does);
 3. ``fit()`` with ``fast`` for ``--steps`` steps on each form and seed (no held-out evaluation
    during training), then ``nepf eval --test gt/dtu_test --gt-mesh gt/mesh.ply``;
 
@@ -26,10 +31,25 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
+
+def surface_points(mesh_ply: Path, camera_centres: np.ndarray, n: int = 4000, seed: int = 0) -> np.ndarray:
+    """``[P, 3]`` world points, area-uniform on the mesh, kept where the outward normal faces at
+    least two of ``camera_centres [N, 3]`` (``n . (o - p) > 0``; occlusion is not tested): where
+    structure from motion can triangulate a feature."""
+    import trimesh
+
+    mesh = trimesh.load(mesh_ply, force="mesh")
+    pts, faces = trimesh.sample.sample_surface(mesh, n, seed=seed)
+    normals = mesh.face_normals[faces]
+    facing = np.einsum("pk,pck->pc", normals, camera_centres[None, :, :] - pts[:, None, :]) > 0.0
+    return np.asarray(pts[facing.sum(1) >= 2], dtype=np.float64)
+
 
 def prepare(scene_dir: Path, out: Path) -> dict[str, Path]:
-    """The two forms of the scene's training views (module docstring, steps 1 and 2)."""
-    from nepf_core.data.convert import write_colmap
+    """The forms of the scene's training views (module docstring, steps 1 and 2)."""
+    from nepf_core.data.convert import dtu_cameras, write_colmap
 
     source = scene_dir / "input" / "dtu" if (scene_dir / "input").is_dir() else scene_dir / "dtu"
     dtu = out / "dtu"
@@ -38,7 +58,11 @@ def prepare(scene_dir: Path, out: Path) -> dict[str, Path]:
     colmap = out / "colmap_txt"
     if not colmap.exists():
         write_colmap(dtu, colmap, binary=False)
-    return {"dtu": dtu, "colmap": colmap}
+    with_points = out / "colmap_points_txt"
+    if not with_points.exists():
+        centres = dtu_cameras(dtu)["c2w"][:, :3, 3]
+        write_colmap(dtu, with_points, binary=False, points=surface_points(scene_dir / "gt" / "mesh.ply", centres))
+    return {"dtu": dtu, "colmap": colmap, "colmap_points": with_points}
 
 
 def train_and_score(data: Path, run: Path, gt: Path, seed: int, steps: int, threads: int) -> dict:
