@@ -42,6 +42,19 @@ def test_only_facing_cameras_near_the_rays_own_direction_are_drawn():
     assert all(p.shape == (1, 3) for p in picks) and 60 < own < 140
 
 
+def test_a_camera_behind_another_part_of_the_object_does_not_see_the_point():
+    from nepf_core.render.surface_views import seen_from
+
+    def two_balls(p):   # a ball of radius 0.2 at the origin and one of radius 0.15 at z = 0.6
+        return torch.minimum(p.norm(dim=-1) - 0.2, (p - torch.tensor([0.0, 0.0, 0.6])).norm(dim=-1) - 0.15)
+
+    x = torch.tensor([[0.0, 0.0, 0.2], [0.0, 0.0, 0.2], [0.2, 0.0, 0.0]])     # on the first ball
+    cams = torch.tensor([[0.0, 0.0, 3.0], [1.5, 0.0, 3.0], [3.0, 0.0, 0.0]])
+    v = torch.nn.functional.normalize(x - cams, dim=-1)                        # camera -> point
+    # straight up the second ball hides it; 26.6 deg off and from the side it is seen
+    assert seen_from(two_balls, x, v).tolist() == [False, True, True]
+
+
 def test_no_eligible_camera_gives_no_pairs():
     x, n, d = torch.zeros(2, 3), torch.tensor([[0.0, 0.0, 1.0]] * 2), torch.tensor([[0.0, 0.0, -1.0]] * 2)
     ray, v = pick_view_cameras(x, n, d, torch.tensor([[0.0, 0.0, -2.0], [3.0, 0.0, 0.0]]), k=2, generator=None)
@@ -62,8 +75,16 @@ class _StubModel(nn.Module):
         start = torch.tensor([0.0, 0.0, 0.0, 0.0, -3.0])            # dielectric start, as the material head
         self.z = nn.Parameter(start.repeat(points.shape[0], 1))
 
-    def sdf(self, x):
-        return x.norm(dim=-1) - 1.0, torch.zeros(x.shape[0], 1)
+    class _Sphere:
+        """The unit sphere's SDF, as ``model.sdf``: ``(sdf, features)`` and ``.sdf``."""
+
+        def __call__(self, x):
+            return x.norm(dim=-1) - 1.0, torch.zeros(x.shape[0], 1)
+
+        def sdf(self, x):
+            return x.norm(dim=-1) - 1.0
+
+    sdf = _Sphere()
 
     def photon(self, x, n, f):
         return self.light.expand(x.shape[0], 3), torch.full((x.shape[0],), 3.0)

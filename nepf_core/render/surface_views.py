@@ -15,16 +15,19 @@ cameras. This term asks the shading to match it there too:
 
 over the lit foreground rays ``r`` and ``K`` (:data:`VIEWS_PER_POINT`) cameras ``o_k`` drawn per
 point among those that face it (``n . (-v) > MIN_FACING_COS``) and lie within
-``MAX_VIEW_ANGLE_DEG`` of the ray's own direction. Nearby views: a point seen from its ray's
-camera is rarely hidden from a camera a few tens of degrees away, and the radiance network has
-been trained on that cone; occlusion is not traced. A view-dependent radiance (a highlight that
+``MAX_VIEW_ANGLE_DEG`` of the ray's own direction (nearby views: the radiance network has been
+trained on that cone), and that see it: a pair is dropped when the SDF is negative at any of
+:data:`OCCLUSION_POINTS` points on the segment from ``x*`` toward the camera, up to where it leaves
+the unit sphere (the radiance network is trained only where a point is visible; behind another
+part of the object its colour is extrapolation). A view-dependent radiance (a highlight that
 moves, a metal's missing diffuse floor) can then only be matched by a lobe of the right
 roughness and colour under a light in the right direction; a view-independent one says the
 opposite. The geometry is detached (``x*``, ``n``, the SDF features): the term trains the
 material and the photon networks only, and the radiance network (the target) not at all.
 
 Cost: the radiance head and the photon, material and BSDF heads at ``K`` extra points per lit
-foreground ray, plus one SDF lookup at ``x*`` for its features.
+foreground ray, ``K`` x :data:`OCCLUSION_POINTS` SDF lookups without gradient, and one SDF lookup at
+``x*`` for its features.
 """
 
 from __future__ import annotations
@@ -43,6 +46,10 @@ MIN_FACING_COS = 0.2
 """A camera sees ``x*`` when ``n . (o - x*) / |o - x*|`` exceeds this (not grazing)."""
 MAX_VIEW_ANGLE_DEG = 40.0
 """The other camera's direction to ``x*`` lies within this angle of the ray's own direction."""
+OCCLUSION_POINTS = 12
+"""SDF lookups on the segment from ``x*`` to the camera that decide whether the camera sees it."""
+OCCLUSION_START = 0.03
+"""The first lookup's distance from ``x*`` (normalised units): past the surface's own band."""
 
 
 @dataclass
@@ -74,6 +81,21 @@ def pick_view_cameras(x: Tensor, n: Tensor, d: Tensor, cams: Tensor, k: int,
     return ray, v[ray, cam[ray, slot]]
 
 
+@torch.no_grad()
+def seen_from(sdf_fn, x: Tensor, v: Tensor) -> Tensor:
+    """``[M]`` bool: no SDF value ``< 0`` at :data:`OCCLUSION_POINTS` points evenly spaced on the
+    segment from ``x + OCCLUSION_START u`` to where the ray ``x + t u`` (``u = -v``, toward the
+    camera) leaves the unit sphere; ``x, v [M, 3]``, ``sdf_fn: [P, 3] -> [P]``."""
+    u = -v
+    b = (x * u).sum(-1)
+    far = -b + (b * b - (x * x).sum(-1) + 1.0).clamp_min(0.0).sqrt()             # exit of |p| = 1
+    far = far.clamp_min(OCCLUSION_START)
+    s = torch.linspace(0.0, 1.0, OCCLUSION_POINTS, device=x.device, dtype=x.dtype)
+    t = OCCLUSION_START + (far[:, None] - OCCLUSION_START) * s[None, :]              # [M, T]
+    pts = x[:, None, :] + t[..., None] * u[:, None, :]
+    return (sdf_fn(pts.reshape(-1, 3)).reshape(t.shape) >= 0.0).all(-1)
+
+
 def shade_surface_views(model, cfg, shading: Shading, x: Tensor, n: Tensor, d: Tensor, keep: Tensor,
                         cams: Tensor, generator: torch.Generator | None = None,
                         k: int = VIEWS_PER_POINT) -> SurfaceViews:
@@ -84,6 +106,9 @@ def shade_surface_views(model, cfg, shading: Shading, x: Tensor, n: Tensor, d: T
     x, n, d = x.detach(), n.detach(), d.detach()
     rows = keep.nonzero(as_tuple=True)[0]
     ray, v = pick_view_cameras(x[rows], n[rows], d[rows], cams.to(x), k, generator)
+    if ray.numel():
+        seen = seen_from(model.sdf.sdf, x[rows][ray], v)
+        ray, v = ray[seen], v[seen]
     if ray.numel() == 0:
         empty = x.new_zeros(0, 3)
         return SurfaceViews(pbr=empty, target=empty, ray=ray)
