@@ -4,8 +4,6 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
 
     L_r     = mean | srgb(L_r) - srgb(L_gt) |
     L_surf  = lambda1 * mean (1 - w_max) | srgb(L_surf) - srgb(sg(L_r)) |     (paper; sg = stop-grad)
-    L_views = w_surf_views * mean_{r,k} | srgb(pbr(x*_r, v_rk)) - srgb(sg R(x*_r, v_rk)) |
-              (x* seen from other training cameras k, render/surface_views.py; off in paper)
     L_vol   = lambda2 * mean | srgb(L_vol) - srgb(L_gt) |
     L_eik   = w_eik * mean_q | |grad f| - 1 |      (q: the sample's ray weight, 1 unless thinned)
     L_hess  = w_hess * mean |H f|_F      (Frobenius norm of the SDF Hessian, fields/gradients.py)
@@ -71,12 +69,6 @@ class LossConfig:
     field's direction terms")."""
     lambda5: float = 0.1
     """``|var x - var l|``: the directions spread as much as the points (0 in ``fast``, as ``lambda4``)."""
-    w_surf_views: float = 0.0
-    """``L_surf`` toward other training cameras (:mod:`nepf_core.render.surface_views`): each lit
-    foreground ray's surface point shaded in the directions of a few nearby cameras that face it,
-    against the radiance network there (stop-grad). From its own ray's direction alone a metal is
-    explained as well by a dark dielectric under a free light, and a misplaced highlight by a broad
-    lobe; across directions only the right lobe fits. Not in the paper (0 in ``paper``)."""
     w_albedo_smooth: float = 0.0
     """Albedo smoothness prior at the surface points; > 0 needs ``RenderConfig.albedo_smooth_sigma
     > 0`` (an error otherwise: :meth:`nepf_core.config.NePFConfig.check`); not in the paper. Unlit regions carry no albedo information, so without a prior
@@ -280,14 +272,6 @@ def loss_surface(b: LossBatch) -> Tensor:
     return (err * wt).sum() / b.surf_rays.sum().clamp_min(1.0)
 
 
-def loss_surface_views(b: LossBatch) -> Tensor:
-    views = _needs(b.out.surface_views, "w_surf_views", "a training render with RenderOutput.surface_views "
-                   "(nepf_core.render.surface_views)")
-    if views is None or views.pbr.shape[0] == 0:
-        return b.zero
-    return (linear_to_srgb(views.pbr) - linear_to_srgb(views.target)).abs().mean()
-
-
 def loss_volume(b: LossBatch) -> Tensor:
     return l1_masked(b.vol_enc, b.gt_all, b.colour_w)
 
@@ -373,7 +357,6 @@ LOSS_TERMS: tuple[LossTerm, ...] = (
     LossTerm("loss_r", "w_r", loss_radiance),
     LossTerm("loss_bg", "w_r", loss_background),
     LossTerm("loss_surf", "lambda1_surf", loss_surface),
-    LossTerm("loss_surf_views", "w_surf_views", loss_surface_views),
     LossTerm("loss_vol", "lambda2_vol", loss_volume),
     LossTerm("loss_eik", "w_eikonal", loss_eikonal),
     LossTerm("loss_hess", "w_hessian", loss_hessian),

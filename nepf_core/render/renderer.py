@@ -26,7 +26,6 @@ from torch import Tensor
 from nepf_core.rays import RayBatch
 from nepf_core.render.sampling import hierarchical_z, object_segment, stratified_z
 from nepf_core.render.shading import Shading, selected_samples, shade_points, shade_samples
-from nepf_core.render.surface_views import SurfaceViews
 from nepf_core.render.surface import (LobeSplit, Surface, SurfaceRequest, jittered_material, lobe_split,
                                       refine_surface, surface_at_index)
 from nepf_core.render.weights import SampleWeights, weights_midpoint_mode, weights_sample_mode
@@ -135,10 +134,6 @@ class RenderOutput:
     lies on (None when the batch has no weights): the eikonal mean is then weighted like the
     mask loss, so a batch thinned by :meth:`nepf_core.train.rules.empty_rays.EmptyRayRule.thin` keeps
     its expectation."""
-    surface_views: SurfaceViews | None = None
-    """The surface points shaded toward other training cameras
-    (:class:`nepf_core.render.surface_views.SurfaceViews`); set by the training step when
-    ``loss.w_surf_views > 0`` (it knows the cameras), else None."""
     colour_logits: Tensor | None = None
     """``[K, 3]`` (training renders): the raw outputs before the sigmoid of every colour this render
     evaluated, the radiance network's at the shaded samples and the background's at its samples,
