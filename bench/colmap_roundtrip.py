@@ -47,22 +47,29 @@ def surface_points(mesh_ply: Path, camera_centres: np.ndarray, n: int = 4000, se
     return np.asarray(pts[facing.sum(1) >= 2], dtype=np.float64)
 
 
-def prepare(scene_dir: Path, out: Path) -> dict[str, Path]:
-    """The forms of the scene's training views (module docstring, steps 1 and 2)."""
+FORMS = ("dtu", "colmap", "colmap_points")
+
+
+def prepare(scene_dir: Path, out: Path, forms: tuple[str, ...] = FORMS) -> dict[str, Path]:
+    """The scene's training views in each of ``forms`` (module docstring, steps 1 and 2), written
+    under ``out`` unless already there; the DTU copy is always made (the others derive from it)."""
     from nepf_core.data.convert import dtu_cameras, write_colmap
 
+    unknown = set(forms) - set(FORMS)
+    if unknown:
+        raise SystemExit(f"unknown form(s) {', '.join(sorted(unknown))}: choose from {', '.join(FORMS)}")
     source = scene_dir / "input" / "dtu" if (scene_dir / "input").is_dir() else scene_dir / "dtu"
     dtu = out / "dtu"
     if not dtu.exists():
         shutil.copytree(source, dtu, ignore=shutil.ignore_patterns("mask"))
-    colmap = out / "colmap_txt"
-    if not colmap.exists():
-        write_colmap(dtu, colmap, binary=False)
-    with_points = out / "colmap_points_txt"
-    if not with_points.exists():
+    paths = {"dtu": dtu, "colmap": out / "colmap_txt", "colmap_points": out / "colmap_points_txt"}
+    if "colmap" in forms and not paths["colmap"].exists():
+        write_colmap(dtu, paths["colmap"], binary=False)
+    if "colmap_points" in forms and not paths["colmap_points"].exists():
         centres = dtu_cameras(dtu)["c2w"][:, :3, 3]
-        write_colmap(dtu, with_points, binary=False, points=surface_points(scene_dir / "gt" / "mesh.ply", centres))
-    return {"dtu": dtu, "colmap": colmap, "colmap_points": with_points}
+        write_colmap(dtu, paths["colmap_points"], binary=False,
+                     points=surface_points(scene_dir / "gt" / "mesh.ply", centres))
+    return {form: paths[form] for form in dict.fromkeys(("dtu",) + tuple(forms))}
 
 
 def train_and_score(data: Path, run: Path, gt: Path, seed: int, steps: int, threads: int) -> dict:
@@ -90,10 +97,10 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", default="0,1")
     ap.add_argument("--steps", type=int, default=1200)
     ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--forms", default="dtu,colmap")
+    ap.add_argument("--forms", default="dtu,colmap", help=f"comma-separated, of {', '.join(FORMS)}")
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
-    forms = prepare(a.scene, a.out)
+    forms = prepare(a.scene, a.out, tuple(a.forms.split(",")))
     rows = []
     print("| form | seed | PBR full | PBR masked | Chamfer (world) | inv_s end | inv_s min |\n|---|---|---|---|---|---|---|")
     for seed in [int(s) for s in a.seeds.split(",")]:

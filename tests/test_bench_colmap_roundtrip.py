@@ -47,3 +47,8 @@ def test_surface_points_face_two_cameras(tmp_path):
     np.testing.assert_allclose(np.linalg.norm(pts, axis=1), 0.5, atol=0.01)
     # only the two cameras above can both face a point: the upper cap they share, none below
     assert pts[:, 2].min() > -0.05 and 0.3 < len(pts) / 2000 < 0.55
+
+
+def test_only_the_forms_asked_for_are_written(small_scene_dir, tmp_path):
+    forms = prepare(small_scene_dir, tmp_path, ("colmap",))
+    assert set(forms) == {"dtu", "colmap"} and not (tmp_path / "colmap_points_txt").exists()
