@@ -121,41 +121,6 @@ class MLP(nn.Module):
                 h = self.act(h)
         return h
 
-    def forward_with_input_gradient(self, x: Tensor, out_index: int = 0) -> tuple[Tensor, Tensor]:
-        """``y = MLP(x)`` and the gradient of one output: ``x [N, in]`` -> ``(y [N, out],
-        dy_k/dx [N, in])`` with ``k = out_index``.
-
-        Reverse mode written out: ``g = W_L[k]``, then for each hidden layer from the last
-        ``g <- (g * act'(z_l)) W_l``; a skip's re-read share of ``g`` goes to ``x``. Built from
-        ordinary ops, so it stays differentiable in the weights (an eikonal term on the result
-        trains them) without ``autograd.grad(create_graph=True)``. Why: a grid SDF's gradient
-        needs one row of the Jacobian, one ``[N, width]`` product per layer. ReLU and softplus only."""
-        if self.cfg.activation not in ("relu", "softplus"):
-            raise ValueError(f"forward_with_input_gradient supports relu and softplus, not {self.cfg.activation!r}")
-        n = len(self.layers)
-        pre_activations = []
-        h = x
-        for k, lin in enumerate(self.layers):
-            if k in self.skips and k > 0:
-                h = torch.cat([h, x], dim=-1) / math.sqrt(2.0)
-            z = lin(h)
-            if k < n - 1:
-                pre_activations.append(z)
-                h = self.act(z)
-            else:
-                h = z
-        g = self.layers[-1].weight[out_index].expand(x.shape[0], -1)
-        g_skip = 0.0
-        for k in range(n - 2, -1, -1):
-            z = pre_activations[k]
-            slope = (z > 0).to(z.dtype) if self.cfg.activation == "relu" else torch.sigmoid(self.cfg.softplus_beta * z)
-            g = (g * slope) @ self.layers[k].weight
-            if k in self.skips and k > 0:
-                width = self.layers[k - 1].out_features
-                g_skip = g_skip + g[:, width:] / math.sqrt(2.0)
-                g = g[:, :width] / math.sqrt(2.0)
-        return h, g + g_skip
-
 
 def build_mlp(cfg: MLPConfig) -> MLP:
     """Build the MLP described by ``cfg`` (the only MLP constructor in the project)."""

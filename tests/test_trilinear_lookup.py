@@ -6,16 +6,22 @@ import torch
 import torch.nn.functional as F
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from grid_fixtures import level_volumes, random_grid
 from nepf_core.fields.grid_encoding import GridConfig, MultiResGrid
 
 
 def _grid(levels=3, feats=3, bound=1.0, seed=0):
-    return random_grid(levels, feats, bound, seed)
+    torch.manual_seed(seed)
+    g = MultiResGrid(GridConfig(n_levels=levels, base_resolution=4, max_resolution=11, features_per_level=feats,
+                                init_std=1.0, bound=bound)).double()
+    g.set_active_levels(levels)
+    return g
 
 
 def _volumes(g):
-    return level_volumes(g)
+    """Each level as the ``grid_sample`` volume ``[1, F, R, R, R]`` (a leaf of its own)."""
+    f = g.cfg.features_per_level
+    return [g.level(l).detach().t().reshape(1, f, r, r, r).clone().requires_grad_()
+            for l, r in enumerate(g.resolutions)]
 
 
 def _reference(vols, x, bound):

@@ -1,8 +1,6 @@
 """Finite-difference SDF gradients (normals / eikonal), the one home of the stencils: central
-(6 points) and tetrahedral (4 points). Used for the Hessian's ``gradient="fd"``
-(:mod:`nepf_core.fields.gradients`), the lobe rule's view spread, the midpoint mode's ``normals="fd"``
-and the sample mode of SDFs without an exact gradient (the grid SDF's normals are exact:
-:meth:`nepf_core.fields.sdf_grid.GridSDF.sdf_and_grad`).
+(6 points) and tetrahedral (4 points). Used for grid SDFs, the Hessian's ``gradient="fd"``
+(:mod:`nepf_core.fields.gradients`) and the lobe rule's view spread.
 
 Grid SDFs are looked up trilinearly (:mod:`nepf_core.fields.trilinear`), whose table gradient
 is scattered outside autograd: an eikonal loss through ``autograd.grad(create_graph=True)``

@@ -40,7 +40,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-from nepf_core.fields.fd_normals import fd_stencil, gradient_from_stencil, sdf_gradient_fd
+from nepf_core.fields.fd_normals import sdf_gradient_fd
 
 
 def sdf_gradient_autograd(sdf_fn: Callable[[Tensor], tuple[Tensor, Tensor]], x: Tensor,
@@ -54,21 +54,6 @@ def sdf_gradient_autograd(sdf_fn: Callable[[Tensor], tuple[Tensor, Tensor]], x: 
         sdf, feat = sdf_fn(x)
         (grad,) = torch.autograd.grad(sdf.sum(), x, create_graph=create_graph)
     return sdf, feat, grad
-
-
-def sdf_feature_and_gradient(sdf_field, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``(sdf [N], feature [N, F], grad [N, 3])`` at ``x [N, 3]``, differentiable in the field's
-    parameters: exact from one lookup where the field offers it (the grid SDF's
-    ``sdf_and_grad``), else the 4-point tetrahedral difference at ``sdf_field.fd_step()`` with
-    ``x`` in the same call. Why the exact one first: the stencil looked the grid up at 4 more
-    points per point, ~45 % of a `fast` step's lookups (docs/FAST.md)."""
-    if hasattr(sdf_field, "sdf_and_grad"):
-        return sdf_field.sdf_and_grad(x)
-    n, step = x.shape[0], sdf_field.fd_step()
-    stencil, offsets = fd_stencil(x, step, scheme="tetra", center="mean")
-    f_all, feat_all = sdf_field(torch.cat([stencil, x], 0))
-    grad, _ = gradient_from_stencil(f_all[:stencil.shape[0]], n, offsets, step, scheme="tetra", center="mean")
-    return f_all[stencil.shape[0]:], feat_all[stencil.shape[0]:], grad
 
 
 def _autograd_gradient_fn(sdf_only: Callable[[Tensor], Tensor]) -> Callable[[Tensor], Tensor]:

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from nepf_core.fields.trilinear import LevelLayout, trilinear_lookup, trilinear_lookup_with_gradient
+from nepf_core.fields.trilinear import LevelLayout, trilinear_lookup
 
 __all__ = ["GridConfig", "MultiResGrid", "sphere_sdf"]
 
@@ -139,23 +139,15 @@ class MultiResGrid(nn.Module):
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     # -- lookup ---------------------------------------------------------------------
-    def forward(self, x: Tensor, with_gradient: bool = False):
-        """Encode ``x [N,3]`` -> ``[N, n_levels*F]`` (dtype of the grids); with ``with_gradient``
-        -> ``(features, d features / dx [N, 3, n_levels*F])``, both from one read of each level's
-        rows (:func:`trilinear_lookup_with_gradient`). Inactive levels give zeros. (One entry
-        point, so module hooks see every lookup.)"""
-        k, n = self.active_levels, x.shape[0]
-        n_off = (self.cfg.n_levels - k) * self.cfg.features_per_level
-        if not with_gradient:
-            feats = trilinear_lookup(self.table, x, self.layout, k, self.cfg.bound).reshape(n, -1)  # [N, k*F]
-            return torch.cat([feats, feats.new_zeros(n, n_off)], 1) if n_off else feats
-        feats, jac = trilinear_lookup_with_gradient(self.table, x, self.layout, k, self.cfg.bound)
-        feats = feats.reshape(n, -1)                                                  # [N, k*F], level-major
-        jac = jac.permute(0, 2, 1, 3).reshape(n, 3, -1)                               # [N, 3, k*F]
+    def forward(self, x: Tensor) -> Tensor:
+        """Encode ``x [N,3]`` -> ``[N, n_levels*F]`` (dtype of the grids)."""
+        k = self.active_levels
+        feats = trilinear_lookup(self.table, x, self.layout, k, self.cfg.bound)
+        feats = feats.reshape(x.shape[0], -1)                                  # [N, k*F], level-major
+        n_off = self.cfg.n_levels - k
         if n_off:
-            feats = torch.cat([feats, feats.new_zeros(n, n_off)], 1)
-            jac = torch.cat([jac, jac.new_zeros(n, 3, n_off)], 2)
-        return feats, jac
+            feats = torch.cat([feats, feats.new_zeros(x.shape[0], n_off * self.cfg.features_per_level)], 1)
+        return feats
 
 
 def sphere_sdf(x: Tensor, radius: float | Tensor = 0.5) -> Tensor:

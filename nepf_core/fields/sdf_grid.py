@@ -5,11 +5,8 @@
 ``G`` is :class:`nepf_core.fields.grid_encoding.MultiResGrid` (trilinear, :mod:`nepf_core.fields.trilinear`),
 activated coarse-to-fine through :meth:`set_progress`. The SDF row of the head's last
 layer starts at zero, so training starts from a sphere of radius ``r`` with exact unit
-gradient. The lookup's table gradient is scattered outside autograd (no double backward), so the
-normals and the eikonal term use :meth:`GridSDF.sdf_and_grad`: the exact gradient, read from the
-same grid rows as the value and pushed through the head in reverse mode by ordinary (differentiable)
-ops. Finite differences (:meth:`GridSDF.fd_step`, half the finest active cell) remain for the
-Hessian and the view-spread probes.
+gradient. The lookup's table gradient is scattered outside autograd (no double backward), so this
+field is used with central-difference normals whose step follows the finest active cell.
 """
 
 from __future__ import annotations
@@ -73,22 +70,6 @@ class GridSDF(nn.Module):
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         h = self.head(torch.cat([self.encoding(x), x], dim=-1))
         return sphere_sdf(x, self.cfg.init_radius) + h[:, 0], h[:, 1:]
-
-    def sdf_and_grad(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """``x [N,3]`` -> ``(sdf [N], feature [N, F], grad sdf [N, 3])``, the gradient exact:
-
-            grad sdf = x / |x| + (dG/dx)^T dh_0/dG + dh_0/dx
-
-        with ``dG/dx [3, D]`` read from the same grid rows as ``G``
-        (:meth:`MultiResGrid.forward` with ``with_gradient``) and ``dh_0/d[G, x]`` from the head in reverse
-        mode (:meth:`nepf_core.mlp.MLP.forward_with_input_gradient`). Differentiable in every parameter,
-        so the eikonal term and the shading normals train the grid and the head."""
-        enc, d_enc = self.encoding(x, with_gradient=True)              # [N, D], [N, 3, D]
-        h, dh0 = self.head.forward_with_input_gradient(torch.cat([enc, x], -1), out_index=0)
-        n_enc = enc.shape[1]
-        radial = x / torch.linalg.vector_norm(x, dim=-1, keepdim=True).clamp_min(1e-12)
-        grad = radial + (d_enc * dh0[:, None, :n_enc]).sum(-1) + dh0[:, n_enc:]
-        return sphere_sdf(x, self.cfg.init_radius) + h[:, 0], h[:, 1:], grad
 
     def sdf(self, x: Tensor) -> Tensor:
         """SDF only: ``[N, 3] -> [N]``."""

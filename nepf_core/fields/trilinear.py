@@ -29,12 +29,7 @@ taken only for ``x`` still adds into ``table.grad`` (zero it before the backward
 as ``fit()`` does). The gradient with respect to ``x`` flows through the corner weights and is
 zero where ``x`` is clipped, as in ``grid_sample``'s border mode.
 
-The spatial derivative (:func:`trilinear_lookup_with_gradient`) weights the same 8 rows by
-``dw_c/dx`` too: one read and one scatter give the value and the gradient, which the grid SDF's
-normals and eikonal term use instead of finite-difference points (docs/FAST.md, "Exact SDF
-gradients").
-
-Device-agnostic: ``embedding_bag``, ``bmm`` and ``index_add_`` run on CUDA as on the CPU.
+Device-agnostic: ``embedding_bag`` and ``index_add_`` run on CUDA as on the CPU.
 """
 
 from __future__ import annotations
@@ -43,7 +38,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["LevelLayout", "corner_rows_and_weights", "trilinear_lookup", "trilinear_lookup_with_gradient"]
+__all__ = ["LevelLayout", "corner_rows_and_weights", "trilinear_lookup"]
 
 # the 8 corners of a cell as (dx, dy, dz), x fastest
 _CORNERS = ((0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0), (0, 0, 1), (1, 0, 1), (0, 1, 1), (1, 1, 1))
@@ -77,27 +72,19 @@ class LevelLayout:
         return self._cache[key]
 
 
-def _cells(x: Tensor, layout: LevelLayout, n_levels: int, bound: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Each point's cell in each level: ``x [N, 3]`` -> ``(rows [N, L, 8] int64, f [N, L, 3]
-    the fractions in [0, 1], u_raw [N, L, 3] the node coordinate before the border clamp)``;
-    ``f`` differentiable in ``x``, corners ordered x fastest."""
-    c = layout.constants(n_levels, x.dtype, x.device)
-    half = c["half_span"]
-    u_raw = torch.addcmul(half, x[:, None, :], half / bound)               # (x/b + 1)(R-1)/2   [N, L, 3]
-    u = torch.clamp(u_raw, torch.zeros_like(c["hi"]), c["hi"])
-    i0 = torch.minimum(u.detach().floor(), c["hi_cell"])                  # the cell's lower node
-    f = u - i0                                                             # [N, L, 3] in [0, 1]
-    base = (i0.to(c["stride"].dtype) * c["stride"]).sum(-1) + c["first"]   # [N, L]
-    rows = (base[..., None] + c["corner_offsets"].t()).long()             # [N, L, 8]
-    return rows, f, u_raw
-
-
 def corner_rows_and_weights(x: Tensor, layout: LevelLayout, n_levels: int, bound: float) -> tuple[Tensor, Tensor]:
     """Rows and weights of the 8 nodes around each point in the first ``n_levels`` levels.
 
     ``x [N, 3]`` -> ``(rows [N, L, 8] int64, weights [N, L, 8])``, the weights in ``x``'s dtype,
     summing to 1 per point and level, differentiable in ``x``; corners ordered x fastest."""
-    rows, f, _ = _cells(x, layout, n_levels, bound)
+    c = layout.constants(n_levels, x.dtype, x.device)
+    half = c["half_span"]
+    u = torch.addcmul(half, x[:, None, :], half / bound)                   # (x/b + 1)(R-1)/2   [N, L, 3]
+    u = torch.clamp(u, torch.zeros_like(c["hi"]), c["hi"])
+    i0 = torch.minimum(u.detach().floor(), c["hi_cell"])                  # the cell's lower node
+    f = u - i0                                                             # [N, L, 3] in [0, 1]
+    base = (i0.to(c["stride"].dtype) * c["stride"]).sum(-1) + c["first"]   # [N, L]
+    rows = (base[..., None] + c["corner_offsets"].t()).long()             # [N, L, 8]
     g = 1.0 - f
     fx, fy, fz, gx, gy, gz = f[..., 0], f[..., 1], f[..., 2], g[..., 0], g[..., 1], g[..., 2]
     wxy = torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], -1)            # [N, L, 4]
@@ -118,19 +105,14 @@ def _zeroed_grad_buffer(table: Tensor) -> Tensor:
 
 
 class _TableLookup(torch.autograd.Function):
-    """``out[b, k] = sum_c w[b, k, c] table[rows[b, c]]`` for bags ``b`` and ``K`` weight sets
-    ``k`` over the same 8 rows (``K = 1``: the value; ``K = 4``: the value and its three spatial
-    derivatives). The table's gradient ``sum_k w[b, k, c] dL/dout[b, k]`` is scattered into
-    ``table.grad`` in place, once per row read (module docstring); ``w``'s is returned."""
+    """``out[b] = sum_c w[b, c] table[rows[b, c]]`` for bags ``b``; the table's gradient is
+    scattered into ``table.grad`` in place (module docstring), ``w``'s is returned."""
 
     @staticmethod
     def forward(ctx, table: Tensor, rows: Tensor, w: Tensor) -> Tensor:
         ctx.table = table
         ctx.save_for_backward(rows, w)
-        n_bags, n_sets = w.shape[:2]
-        bag_rows = rows if n_sets == 1 else rows[:, None, :].expand(-1, n_sets, -1).reshape(-1, 8)
-        out = F.embedding_bag(bag_rows, table.detach(), per_sample_weights=w.detach().reshape(-1, 8), mode="sum")
-        return out.reshape(n_bags, n_sets, -1)
+        return F.embedding_bag(rows, table.detach(), per_sample_weights=w.detach(), mode="sum")
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):
@@ -140,26 +122,11 @@ class _TableLookup(torch.autograd.Function):
         if ctx.needs_input_grad[0]:
             if table.grad is None:
                 table.grad = _zeroed_grad_buffer(table)
-            if w.shape[1] == 1:
-                per_row = w[:, 0, :, None] * grad_out[:, 0, None, :]                                  # [B, 8, F]
-            else:
-                per_row = torch.bmm(w.transpose(1, 2), grad_out)                                       # [B, 8, F]
-            table.grad.index_add_(0, rows.reshape(-1), per_row.reshape(-1, n_feat))
+            table.grad.index_add_(0, rows.reshape(-1), (w[:, :, None] * grad_out[:, None, :]).reshape(-1, n_feat))
         grad_w = None
         if ctx.needs_input_grad[2]:
-            corner_values = table.detach()[rows]                                                       # [B, 8, F]
-            grad_w = (corner_values[:, None] * grad_out[:, :, None, :]).sum(-1)                         # [B, K, 8]
+            grad_w = (table.detach()[rows] * grad_out[:, None, :]).sum(-1)                              # [B, 8]
         return None, None, grad_w
-
-
-def _apply_lookup(table: Tensor, rows: Tensor, w: Tensor) -> Tensor:
-    """``rows [B, 8]``, ``w [B, K, 8]`` -> ``[B, K, F]`` through :class:`_TableLookup` when a
-    gradient is wanted, else one ``embedding_bag``."""
-    if torch.is_grad_enabled() and (table.requires_grad or w.requires_grad):
-        return _TableLookup.apply(table, rows, w)
-    n_bags, n_sets = w.shape[:2]
-    bag_rows = rows if n_sets == 1 else rows[:, None, :].expand(-1, n_sets, -1).reshape(-1, 8)
-    return F.embedding_bag(bag_rows, table, per_sample_weights=w.reshape(-1, 8), mode="sum").reshape(n_bags, n_sets, -1)
 
 
 def trilinear_lookup(table: Tensor, x: Tensor, layout: LevelLayout, n_levels: int, bound: float) -> Tensor:
@@ -168,44 +135,9 @@ def trilinear_lookup(table: Tensor, x: Tensor, layout: LevelLayout, n_levels: in
     gradient goes into ``table.grad`` (rows read only), ``x``'s through autograd."""
     rows, w = corner_rows_and_weights(x.to(table.dtype), layout, n_levels, bound)
     n, n_levels = rows.shape[:2]
-    out = _apply_lookup(table, rows.reshape(n * n_levels, 8), w.reshape(n * n_levels, 1, 8))
+    rows, w = rows.reshape(n * n_levels, 8), w.reshape(n * n_levels, 8)
+    if torch.is_grad_enabled() and (table.requires_grad or w.requires_grad):
+        out = _TableLookup.apply(table, rows, w)
+    else:
+        out = F.embedding_bag(rows, table, per_sample_weights=w, mode="sum")
     return out.reshape(n, n_levels, -1)
-
-
-def _corner_products(ax: Tensor, ay: Tensor, az: Tensor) -> Tensor:
-    """``[..., 2]`` factors per axis (lower, upper node) -> ``[..., 8]`` their products over the
-    cell's corners, x fastest (the order of ``_CORNERS``)."""
-    return (az[..., :, None, None] * ay[..., None, :, None] * ax[..., None, None, :]).flatten(-3)
-
-
-def trilinear_lookup_with_gradient(table: Tensor, x: Tensor, layout: LevelLayout, n_levels: int,
-                                   bound: float) -> tuple[Tensor, Tensor]:
-    """The lookup and its exact spatial derivative, from the same 8 rows:
-    ``x [N, 3]`` -> ``(out [N, L, F], d out / dx [N, L, 3, F])``.
-
-    Inside a cell ``out = sum_c w_c V_c`` with ``w_c = prod_a h_a(c_a)``, ``h_a(1) = f_a``,
-    ``h_a(0) = 1 - f_a``, and ``f_a`` moves with ``x_a`` at ``du/dx = (R - 1) / (2 bound)``, so
-
-        d out / dx_a = sum_c (d w_c / d f_a) (du / dx) V_c,    d w_c / d f_a = (2 c_a - 1) prod_{b != a} h_b(c_b)
-
-    (zero along an axis where ``x`` is clamped to the border, as ``grid_sample``'s border mode).
-    Why: an SDF's normal and eikonal term need ``grad f``; finite differences look the grid up at
-    4 more points per point, this reads the rows once and weights them 4 ways (one scatter of
-    the combined weights in the backward). It is piecewise constant across cell faces, where
-    finite differences with a step near the cell size average neighbouring cells.
-    Differentiable in the table (scattered as in :func:`trilinear_lookup`) and in ``x`` through
-    the weights."""
-    x = x.to(table.dtype)
-    rows, f, u_raw = _cells(x, layout, n_levels, bound)
-    c = layout.constants(n_levels, x.dtype, x.device)
-    du_dx = (c["half_span"] / bound) * ((u_raw >= 0) & (u_raw <= c["hi"])).to(x.dtype)   # [N, L, 3]
-    h = torch.stack([1.0 - f, f], -1)                                         # [N, L, 3, 2]
-    dh = torch.stack([-du_dx, du_dx], -1)                                     # [N, L, 3, 2]
-    hx, hy, hz = h.unbind(2)
-    dx, dy, dz = dh.unbind(2)
-    w = torch.stack([_corner_products(hx, hy, hz), _corner_products(dx, hy, hz),
-                     _corner_products(hx, dy, hz), _corner_products(hx, hy, dz)], -2)   # [N, L, 4, 8]
-    n, n_levels = rows.shape[:2]
-    out = _apply_lookup(table, rows.reshape(n * n_levels, 8), w.reshape(n * n_levels, 4, 8))
-    out = out.reshape(n, n_levels, 4, -1)
-    return out[:, :, 0], out[:, :, 1:]

@@ -19,7 +19,7 @@ import torch
 from torch import Tensor
 
 from nepf_core import bsdf
-from nepf_core.fields.gradients import sdf_feature_and_gradient
+from nepf_core.fields.fd_normals import fd_stencil, gradient_from_stencil
 from nepf_core.render.neus import surface_crossing_t
 
 
@@ -97,8 +97,8 @@ def surface_at_index(sel: "ShadedSamples", flat_max: Tensor, pts: Tensor, normal
 def refine_surface(model, o: Tensor, d: Tensor, z: Tensor, f: Tensor, idx_max: Tensor, *,
                    jitter_sigma: float = 0.0) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None]:
     """The zero crossing ``x_r = o + t* d`` inside each ray's max-weight section
-    (:func:`nepf_core.render.neus.surface_crossing_t`), its normal
-    (:func:`nepf_core.fields.gradients.sdf_feature_and_gradient`) and SDF features, in one SDF call. With ``jitter_sigma > 0`` the smoothness priors' points
+    (:func:`nepf_core.render.neus.surface_crossing_t`), its tetrahedral finite-difference normal
+    and SDF features, in one SDF call. With ``jitter_sigma > 0`` the smoothness priors' points
     ``x_j = x_r + N(0, sigma^2 I)`` (``torch.randn``) join the same call.
 
     Returns ``(x_r [R, 3], n_r [R, 3], feat_r [R, F], x_j [R, 3] or None, feat_j or None)``."""
@@ -109,10 +109,13 @@ def refine_surface(model, o: Tensor, d: Tensor, z: Tensor, f: Tensor, idx_max: T
     if jitter_sigma > 0:
         xj = xr + jitter_sigma * torch.randn(xr.shape, device=o.device, dtype=xr.dtype)
         queries.append(xj)
-    _, feat_all, g_all = sdf_feature_and_gradient(model.sdf, torch.cat(queries, 0))
-    gr, fr = g_all[:R], feat_all[:R]
+    step = model.sdf.fd_step()
+    stencil, offsets = fd_stencil(xr, step, scheme="tetra", center="mean")
+    f_all, feat_all = model.sdf(torch.cat([stencil] + queries, 0))
+    gr, _ = gradient_from_stencil(f_all, R, offsets, step, scheme="tetra", center="mean")
+    fr = feat_all[stencil.shape[0]:stencil.shape[0] + R]
     if xj is not None:
-        fj = feat_all[R:]
+        fj = feat_all[stencil.shape[0] + R:]
     nr = gr / gr.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     return xr, nr, fr, xj, fj
 

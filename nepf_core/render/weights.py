@@ -5,8 +5,8 @@ returning :class:`SampleWeights` for ``R`` rays of ``S`` samples (``P = R S``):
 
 * :func:`weights_sample_mode`: the SDF at the samples ``x_i = o + t_i d`` and
   ``alpha_i = clip((Phi(s f_i) - Phi(s f_{i+1}) + 1e-5) / (Phi(s f_i) + 1e-5), 0, 1)``, the last
-  sample's alpha 0. No gradient is needed for the weights, so the gradient
-  (:func:`nepf_core.fields.gradients.sdf_feature_and_gradient`) is taken only where a head will be evaluated (``w_i > head_weight_threshold``,
+  sample's alpha 0. No gradient is needed for the weights, so the gradient (tetrahedral finite
+  differences) is taken only where a head will be evaluated (``w_i > head_weight_threshold``,
   and each ray's max-weight sample) plus a random ``eikonal_fraction`` of the samples.
 * :func:`weights_midpoint_mode`: NeuS's section opacity from the SDF at the section midpoints
   ``t_i + delta_i / 2`` and the annealed ray-normal cosine (needs the gradient at every sample:
@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from nepf_core.fields.fd_normals import sdf_gradient_fd
-from nepf_core.fields.gradients import sdf_feature_and_gradient, sdf_gradient_autograd, sdf_hessian_norm
+from nepf_core.fields.gradients import sdf_gradient_autograd, sdf_hessian_norm
 from nepf_core.render.neus import alpha_from_sdf, annealed_cos, max_weight_index, weights_from_alpha
 
 
@@ -82,6 +82,7 @@ def weights_sample_mode(model, o: Tensor, d: Tensor, z: Tensor, inv_s: Tensor, *
 
     The random eikonal subset is drawn from torch's global generator (``torch.rand``)."""
     R, S = z.shape
+    sdf_only = model.sdf.sdf
     pts = (o[:, None, :] + d[:, None, :] * z[..., None]).reshape(-1, 3)
     sdf, feat = model.sdf(pts)
     f = sdf.reshape(R, S)
@@ -97,7 +98,7 @@ def weights_sample_mode(model, o: Tensor, d: Tensor, z: Tensor, inv_s: Tensor, *
     if train and eikonal_fraction > 0:
         need |= torch.rand(need.shape, device=o.device) < eikonal_fraction
     gidx = need.nonzero(as_tuple=True)[0]
-    _, _, g_sub = sdf_feature_and_gradient(model.sdf, pts[gidx])
+    g_sub, _ = sdf_gradient_fd(sdf_only, pts[gidx], model.sdf.fd_step(), scheme="tetra", center="mean")
     grad = pts.new_zeros(pts.shape[0], 3).index_copy(0, gidx, g_sub)
     inside_sub = pts[gidx].norm(dim=-1) < 1.0
     eikonal = (g_sub.norm(dim=-1) - 1.0).abs()[inside_sub]
