@@ -1,6 +1,7 @@
 """bench/colmap_roundtrip.py: the two forms of one scene hold the same views, neither with masks."""
 
 import numpy as np
+import pytest
 
 from bench.colmap_roundtrip import prepare
 from nepf_core.data.detect import load_scene
@@ -52,3 +53,9 @@ def test_surface_points_face_two_cameras(tmp_path):
 def test_only_the_forms_asked_for_are_written(small_scene_dir, tmp_path):
     forms = prepare(small_scene_dir, tmp_path, ("colmap",))
     assert set(forms) == {"dtu", "colmap"} and not (tmp_path / "colmap_points_txt").exists()
+
+
+def test_an_unknown_form_is_named_and_nothing_is_written(small_scene_dir, tmp_path):
+    with pytest.raises(SystemExit, match="unknown form.*colmap_bin"):
+        prepare(small_scene_dir, tmp_path / "out", ("dtu", "colmap_bin"))
+    assert not (tmp_path / "out").exists()
