@@ -15,6 +15,8 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_range = w_material_range * mean_surf mean_k relu(|z_k| - z_max)   (z: material logits; off in paper)
     L_crange = w_colour_range * mean relu(|z| - z_c)   (z: radiance / background colour logits; off in paper)
     L_unseen = w_metallic_unseen * mean_lit m (1 - s)   (s: the lobe's share of L_surf, stop-grad; off in paper)
+    L_evid  = w_material_evidence * mean_p q_m |m(x*) - m*|
+              (targets from the radiance field across views, render/material_evidence.py; off in paper)
     L_bg    = w_r * mean_{mask = 0} | srgb(L_r) - srgb(L_gt) |   (masks and a background model)
     L_points = w_surface_points * mean_p |f(p)|   (captures without masks, train/surface_points.py)
 
@@ -119,6 +121,12 @@ class LossConfig:
     pixel catches) only darkens its diffuse by ``(1 - m)``, which the albedo can do as well; the
     images cannot tell the two apart, and without a prior the texture goes into metallic. Where
     the lobe carries the colour (a real metal: ``s ~ 1``) the term vanishes."""
+    w_material_evidence: float = 0.0
+    """Pull the metallic at a few lit surface points per step toward what the radiance
+    network's colours from other training cameras say the point is
+    (:mod:`nepf_core.render.material_evidence`: the glTF BSDF fitted as a dielectric and as a metal
+    at several roughnesses, each at its own best albedo), weighted by how clearly one fits better.
+    Not in the paper (0 in ``paper``)."""
     w_surface_points: float = 0.0
     """Without masks: ``mean |f(p)|`` at the points triangulated from the images in the object
     region (:mod:`nepf_core.train.surface_points`, Geo-NeuS's sparse-point SDF loss). Not in the
@@ -335,6 +343,15 @@ def loss_metallic_unseen(b: LossBatch) -> Tensor:
     return mean_where(b.out.surface.metallic * (1.0 - lobe.share.detach()), b.lit)
 
 
+def loss_material_evidence(b: LossBatch) -> Tensor:
+    eb = _needs(b.out.material_evidence, "w_material_evidence", "a training render with "
+                "RenderOutput.material_evidence (nepf_core.render.material_evidence)")
+    if eb.rays.numel() == 0:
+        return b.zero
+    s, ev = b.out.surface, eb.evidence
+    return (ev.metallic_confidence * (s.metallic[eb.rays] - ev.metallic).abs()).mean()
+
+
 def loss_surface_points(b: LossBatch) -> Tensor:
     return b.surface_points()
 
@@ -368,6 +385,7 @@ LOSS_TERMS: tuple[LossTerm, ...] = (
     LossTerm("loss_material_range", "w_material_range", loss_material_range),
     LossTerm("loss_colour_range", "w_colour_range", loss_colour_range),
     LossTerm("loss_metallic_unseen", "w_metallic_unseen", loss_metallic_unseen, lobe_split=True),
+    LossTerm("loss_material_evidence", "w_material_evidence", loss_material_evidence),
     LossTerm("loss_surface_points", "w_surface_points", loss_surface_points, optional=True),
 )
 """Every term, in the order they are computed and summed."""

@@ -134,6 +134,10 @@ class RenderOutput:
     lies on (None when the batch has no weights): the eikonal mean is then weighted like the
     mask loss, so a batch thinned by :meth:`nepf_core.train.rules.empty_rays.EmptyRayRule.thin` keeps
     its expectation."""
+    material_evidence: object | None = None
+    """What the radiance field across views says the material is at some surface points
+    (:class:`nepf_core.render.material_evidence.EvidenceBatch`); set by the training step when
+    ``loss.w_material_evidence > 0`` (it knows the cameras), else None."""
     colour_logits: Tensor | None = None
     """``[K, 3]`` (training renders): the raw outputs before the sigmoid of every colour this render
     evaluated, the radiance network's at the shaded samples and the background's at its samples,

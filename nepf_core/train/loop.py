@@ -34,6 +34,8 @@ from nepf_core.data.scene import Scene
 from nepf_core.losses import compute_losses, needs_lobe_split, total_loss
 from nepf_core.model import NePFModel
 from nepf_core.rays import PixelSampler
+from nepf_core.render.material_evidence import gather_evidence
+from nepf_core.render.neus import foreground
 from nepf_core.render.renderer import SurfaceRequest, render_background_only, render_rays
 from nepf_core.reframe import reframe_scene
 from nepf_core.resume import cut_metrics_to_checkpoint, write_checkpoint_info
@@ -117,6 +119,7 @@ class TrainingRun:
         self.gen = torch.Generator().manual_seed(tc.seed)
         self.ema = ParamEMA(self.model, tc.ema_decay) if tc.ema_decay != 0 else None   # a negative one: ParamEMA says so
         self.sampler = PixelSampler(scene, dev)
+        self.camera_centres = torch.as_tensor(np.asarray(scene.c2w)[:, :3, 3], dtype=torch.float32, device=dev)
         points = data.surface_points   # without masks: where the images saw a surface
         self.surface_points = (SurfacePointPrior(points, dev) if cfg.loss.w_surface_points > 0 and points is not None
                                and len(points) else None)
@@ -240,6 +243,8 @@ class TrainingRun:
             background_rays = (c_bg, left_out)
             out.colour_logits = torch.cat([out.colour_logits, z_bg])
         self._n_background_rays = 0 if background_rays is None else len(left_out)
+        if loss_cfg.w_material_evidence > 0:
+            out.material_evidence = self._material_evidence(rays, out)
         points = None if self.surface_points is None else (lambda: self.surface_points.loss(model, self.gen))
         losses = compute_losses(out, rays, loss_cfg, use_mask=rs.use_mask_loss, specular=rs.specular,
                                 background=rs.background, background_rays=background_rays, surface_points=points)
@@ -259,6 +264,17 @@ class TrainingRun:
                                f"(limit {tc.max_nonfinite_steps}); last at step {self.step}")
         self.step += 1
         return rays, out, losses
+
+    def _material_evidence(self, rays, out):
+        """The material evidence (:mod:`nepf_core.render.material_evidence`) at some lit foreground
+        rays' surface points, for ``loss.w_material_evidence``."""
+        keep = foreground(out.weight_sum)
+        if rays.mask is not None:
+            keep = keep & (rays.mask > 0.5)
+        if rays.unlit is not None:
+            keep = keep & ~rays.unlit
+        s = out.surface
+        return gather_evidence(self.model, s.x, s.normal, s.light_dir, keep, self.camera_centres, self.gen)
 
     def _after_step(self, rays, out, losses) -> None:
         """The rules, the weight average's restart, records, sync/held-out evaluations, checkpoints."""
