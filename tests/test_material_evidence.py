@@ -193,6 +193,18 @@ def test_gather_evidence_uses_only_facing_cameras_that_see_the_point():
     assert valid_b.tolist() == [[False]]
 
 
+def test_no_lit_point_or_too_few_views_give_no_evidence():
+    model = _SphereModel()
+    x = torch.tensor([[0.0, 0.0, 0.5], [0.0, 0.0, -0.5]])
+    n = _unit(x)
+    cams = torch.tensor([[0.0, 0.0, 3.0], [1.0, 0.0, 3.0], [0.0, 1.0, 3.0]])
+    none_lit = me.gather_evidence(model, x, n, n, torch.zeros(2, dtype=torch.bool), cams)
+    only_bottom = me.gather_evidence(model, x, n, n, torch.tensor([False, True]), cams)   # no camera below
+    for eb in (none_lit, only_bottom):
+        assert eb.rays.numel() == 0 and eb.evidence.metallic.shape == (0,)
+        assert eb.evidence.residual.shape == (0, 2 * len(me.ROUGHNESS_GRID))
+
+
 def test_the_term_pulls_toward_the_targets_by_their_confidence():
     torch.manual_seed(0)
     cfg = tiny()
@@ -215,6 +227,9 @@ def test_the_term_pulls_toward_the_targets_by_their_confidence():
     reached = {name.split(".")[0] for (name, _), gr in zip(model.named_parameters(), grads)
                if gr is not None and gr.abs().sum() > 0}
     assert reached <= {"material", "sdf"} and "material" in reached
+    out.material_evidence = me.EvidenceBatch(rays=torch.zeros(0, dtype=torch.long),
+                                             evidence=me._no_evidence(torch.zeros(1)))
+    assert float(compute_losses(out, rays, loss_cfg, use_mask=False)["loss_material_evidence"]) == 0.0
     out.material_evidence = None
     with pytest.raises(ValueError, match="w_material_evidence"):
         compute_losses(out, rays, loss_cfg, use_mask=False)

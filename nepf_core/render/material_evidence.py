@@ -209,6 +209,13 @@ class EvidenceBatch:
     evidence: MaterialEvidence
 
 
+def _no_evidence(like: Tensor) -> MaterialEvidence:
+    """Evidence at no point (a batch without a lit foreground ray: a dark start, a near-mirror)."""
+    empty = like.new_zeros(0)
+    return MaterialEvidence(metallic=empty, metallic_confidence=empty, roughness=empty,
+                            roughness_confidence=empty, residual=like.new_zeros(0, 2 * len(ROUGHNESS_GRID)))
+
+
 @torch.no_grad()
 def seen_from(sdf_fn, x: Tensor, u: Tensor) -> Tensor:
     """``[M]`` bool: the SDF is ``>= 0`` at :data:`OCCLUSION_POINTS` points evenly spaced on the
@@ -253,6 +260,8 @@ def gather_evidence(model, x: Tensor, n: Tensor, light_dir: Tensor, keep: Tensor
     their surface points ``x, n, light_dir [R, 3]`` (detached here), cameras ``cams [C, 3]``
     (normalised frame). Points seen by fewer than :data:`MIN_VIEWS` cameras are left out."""
     rows = keep.nonzero(as_tuple=True)[0]
+    if rows.numel() == 0:
+        return EvidenceBatch(rays=rows, evidence=_no_evidence(x))
     if rows.numel() > points:
         pick = torch.randperm(rows.numel(), generator=generator)[:points].to(rows.device)
         rows = rows[pick]
@@ -260,4 +269,6 @@ def gather_evidence(model, x: Tensor, n: Tensor, light_dir: Tensor, keep: Tensor
     c, v, valid = views_of_points(model, x, n, cams.to(x), k, generator)
     enough = valid.sum(-1) >= MIN_VIEWS
     rows, c, v, valid, n, l = rows[enough], c[enough], v[enough], valid[enough], n[enough], l[enough]
+    if rows.numel() == 0:
+        return EvidenceBatch(rays=rows, evidence=_no_evidence(x))
     return EvidenceBatch(rays=rows, evidence=material_evidence(c, n, l, v, valid))
