@@ -29,10 +29,14 @@ def _load(data_dir: str, max_side: int):
     return load_scene(data_dir, max_side=max_side)
 
 
+OVERRIDES: dict = {}
+"""``--override`` values for every fit of this process (section.field -> value)."""
+
+
 def _config(steps: int):
     from nepf_core.jobs import build_config
     return build_config("fast", steps, {"train.eval_every_s": 0.0, "train.sync_every": 0,
-                                        "train.checkpoint_every": 10 ** 9, "train.log_every": 10})
+                                        "train.checkpoint_every": 10 ** 9, "train.log_every": 10, **OVERRIDES})
 
 
 def profile_table(scene, steps: int, top: int) -> list[dict]:
@@ -79,7 +83,11 @@ def main(argv=None) -> int:
     p.add_argument("--top", type=int, default=12)
     p.add_argument("--no-profile", action="store_true", help="timing only")
     p.add_argument("--json", default=None)
+    p.add_argument("--override", action="append", default=[], metavar="section.field=VALUE",
+                   help="config override for every fit (JSON value), e.g. loss.w_material_evidence=1e-3")
     a = p.parse_args(argv)
+    from bench.run import _parse_overrides
+    OVERRIDES.update(_parse_overrides(a.override))
 
     import torch
 

@@ -67,6 +67,11 @@ class MaterialEvidence:
     roughness: Tensor
     roughness_confidence: Tensor
     residual: Tensor
+    light_dir: Tensor | None = None
+    """``[P, 3]`` the light direction of the best hypothesis (with the light search), else None."""
+    light_confidence: Tensor | None = None
+    """``[P]`` ``1 - e_best / e_best(given light)``: how much better that direction fits than the
+    given one (0 where the given one is best)."""
 
 
 def hypothesis_basis(n: Tensor, l: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
@@ -183,8 +188,14 @@ def material_evidence(c: Tensor, n: Tensor, l: Tensor, v: Tensor, valid: Tensor,
         J = ls.shape[1]
         rep = lambda t: t[:, None].expand(P, J, *t.shape[1:]).reshape(P * J, *t.shape[1:])
         A, B = hypothesis_basis(rep(n), ls.reshape(P * J, 3), rep(v))
-        e = fit_hypotheses(rep(c), A, B, rep(valid)).reshape(P, J, -1).min(1).values
-        return evidence_from_residuals(e)
+        e_all = fit_hypotheses(rep(c), A, B, rep(valid)).reshape(P, J, -1)
+        e, _ = e_all.min(1)
+        ev = evidence_from_residuals(e)
+        best_per_light = e_all.min(2).values                                             # [P, J]
+        e_best, j_best = best_per_light.min(1)
+        ev.light_dir = ls[torch.arange(P, device=l.device), j_best]
+        ev.light_confidence = 1.0 - e_best / best_per_light[:, 0].clamp_min(1e-12)
+        return ev
 
 
 VIEWS_PER_POINT = 8
@@ -213,7 +224,8 @@ def _no_evidence(like: Tensor) -> MaterialEvidence:
     """Evidence at no point (a batch without a lit foreground ray: a dark start, a near-mirror)."""
     empty = like.new_zeros(0)
     return MaterialEvidence(metallic=empty, metallic_confidence=empty, roughness=empty,
-                            roughness_confidence=empty, residual=like.new_zeros(0, 2 * len(ROUGHNESS_GRID)))
+                            roughness_confidence=empty, residual=like.new_zeros(0, 2 * len(ROUGHNESS_GRID)),
+                            light_dir=like.new_zeros(0, 3), light_confidence=empty)
 
 
 @torch.no_grad()
