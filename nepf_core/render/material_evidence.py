@@ -24,7 +24,12 @@ are not told apart. The evidence (:func:`material_evidence`):
 * metallic target ``m* = [e_metal < e_dielectric]`` with confidence
   ``q_m = |e_d - e_m| / max(e_d, e_m)`` (``e_d``, ``e_m``: each kind's best roughness);
 * roughness target ``r*`` (the best hypothesis's roughness) with confidence
-  ``q_r = 1 - e_best / max_r e(m*, r)``: how much the roughness matters to the fit.
+  ``q_r = 1 - e_best / max_r e(m*, r)``: how much the roughness matters to the fit (reported by
+  ``bench.evidence_report``, not trained: docs/FAST.md);
+* with the light search (each hypothesis also at the learned direction tilted by
+  :data:`LIGHT_TILTS_DEG` at :data:`LIGHT_AZIMUTHS` azimuths), the light target ``l*``, the
+  direction of the best hypothesis, with confidence ``q_l = 1 - e_best / e_best(learned l)``:
+  where a lobe is seen, the highlight says where the light is.
 
 Why this and not a prior: a dark dielectric and a metal fit one view alike, and a prior on the
 metallic at its *current* value confirms itself (bench/RESULTS.md v31). Across views the two
@@ -51,6 +56,18 @@ RESIDUAL_FLOOR = 0.01
 (1 %: a radiance network at ~20-30 dB on the training views)."""
 FIT_ROUNDS = 8
 """Rounds of the alternating least squares of :func:`fit_hypotheses`."""
+VIEWS_PER_POINT = 8
+"""``K``: training cameras drawn per point (among those that face and see it)."""
+POINTS_PER_STEP = 64
+"""Lit foreground rays per training step whose surface point gathers evidence."""
+MIN_FACING_COS = 0.2
+"""A camera faces ``x*`` when ``n . (o - x*) / |o - x*|`` exceeds this (not grazing)."""
+MIN_VIEWS = 3
+"""Points seen by fewer cameras give no evidence (two views cannot tell a lobe from a floor)."""
+OCCLUSION_POINTS = 10
+"""SDF lookups on the segment from ``x*`` toward a camera that decide whether it sees ``x*``."""
+OCCLUSION_START = 0.03
+"""The first lookup's distance from ``x*`` (normalised units): past the surface's own band."""
 LIGHT_TILTS_DEG = (15.0, 30.0)
 """The light directions tried besides the given one: tilted by these angles ..."""
 LIGHT_AZIMUTHS = 6
@@ -196,20 +213,6 @@ def material_evidence(c: Tensor, n: Tensor, l: Tensor, v: Tensor, valid: Tensor,
         ev.light_dir = ls[torch.arange(P, device=l.device), j_best]
         ev.light_confidence = 1.0 - e_best / best_per_light[:, 0].clamp_min(1e-12)
         return ev
-
-
-VIEWS_PER_POINT = 8
-"""``K``: training cameras drawn per point (among those that face and see it)."""
-POINTS_PER_STEP = 64
-"""Lit foreground rays per training step whose surface point gathers evidence."""
-MIN_FACING_COS = 0.2
-"""A camera faces ``x*`` when ``n . (o - x*) / |o - x*|`` exceeds this (not grazing)."""
-MIN_VIEWS = 3
-"""Points seen by fewer cameras give no evidence (two views cannot tell a lobe from a floor)."""
-OCCLUSION_POINTS = 10
-"""SDF lookups on the segment from ``x*`` toward a camera that decide whether it sees ``x*``."""
-OCCLUSION_START = 0.03
-"""The first lookup's distance from ``x*`` (normalised units): past the surface's own band."""
 
 
 @dataclass
