@@ -103,6 +103,9 @@ class NePFConfig:
         if (self.loss.w_albedo_smooth > 0 or self.loss.w_brdf_smooth > 0) and self.render.albedo_smooth_sigma <= 0:
             raise ValueError("loss.w_albedo_smooth / loss.w_brdf_smooth > 0 need render.albedo_smooth_sigma > 0 "
                              "(the jitter of the smoothness priors); set it, or set the weights to 0")
+        if self.loss.w_material_evidence > 0 and self.render.bsdf_kind != "gltf":
+            raise ValueError("loss.w_material_evidence > 0 needs render.bsdf_kind = \"gltf\" (the evidence fits "
+                             "the glTF BSDF); set it, or set the weight to 0")
 
     @staticmethod
     def from_dict(d: dict) -> "NePFConfig":

@@ -74,7 +74,8 @@ def test_the_generating_hypothesis_fits_to_the_floor():
         c = beta * (A[:, h, :, None] * torch.tensor(albedo) + B[:, h, :, None])     # unclipped, exact
         e = me.fit_hypotheses(c, A, B, valid)
         assert torch.allclose(e[:, h], torch.full((32,), me.RESIDUAL_FLOOR), rtol=1e-3), (m, r)
-        assert bool((e >= me.RESIDUAL_FLOOR - 1e-6).all())      # nothing fits better than exactly
+        other_kind = e[:, G:] if h < G else e[:, :G]       # the other kind cannot fit it as well
+        assert float((other_kind.min(1).values > me.RESIDUAL_FLOOR * 1.05).float().mean()) > 0.9
 
 
 def _sphere_points(count: int, g: torch.Generator):
@@ -106,9 +107,10 @@ def test_a_half_metal_half_dielectric_sphere_splits(tilt_deg):
     assert float((called == metal)[~metal].float().mean()) == 1.0      # no dielectric called metal
     wrong = (called != metal).float()
     assert float((ev.metallic_confidence * wrong).sum() / ev.metallic_confidence.sum()) < 0.02
-    grid = list(me.ROUGHNESS_GRID)
-    step = max(b - a for a, b in zip(grid, grid[1:]))
-    assert float((ev.roughness[metal] - 0.3).abs().median()) <= step + 1e-6
+    # the true roughness at the true light; a neighbour of it on the grid (0.2 or 0.45) when tilted
+    median = float(ev.roughness[metal].median())
+    assert median == pytest.approx(0.3) if not tilt_deg else median in (pytest.approx(0.2), pytest.approx(0.3),
+                                                                         pytest.approx(0.45))
 
 
 def test_without_the_light_search_a_tilted_light_costs_metals():
@@ -145,7 +147,6 @@ def test_the_light_target_moves_a_tilted_light_toward_the_true_one(albedo, rough
     assert float(angle(tilted.light_dir)[sure].median()) < 15.0
     right = me.material_evidence(c, n, l, v, valid)
     assert float((right.light_confidence > 0.1).float().mean()) < 0.05
-    assert bool((right.light_confidence >= 0).all()) and bool((tilted.light_confidence <= 1).all())
 
 
 def test_light_candidates_are_unit_and_tilted_by_the_stated_angles():
@@ -204,6 +205,14 @@ def test_gather_evidence_uses_only_facing_cameras_that_see_the_point():
     # the top point sees the four cameras above it; the camera at +x is grazing (n.v = 0) for
     # both; the bottom point sees only the camera below
     assert valid.sum(-1).tolist() == [4, 1]
+    # each colour is the point seen from that camera: v points toward the camera
+    for p in range(2):
+        for k in valid[p].nonzero().flatten().tolist():
+            to_cam = _unit(cams - x[p])
+            assert any(torch.allclose(v[p, k], t, atol=1e-6) for t in to_cam)
+            expected = bsdf.shade(n[p:p + 1], model.light[None], v[p, k][None], torch.tensor([GOLD]),
+                                  torch.tensor([[0.3]]), torch.ones(1, 1), torch.full((1, 1), 3.0), kind="gltf")
+            assert torch.allclose(c[p, k], expected[0].clamp(0, 1), atol=1e-6)
     eb = me.gather_evidence(model, x, n, model.light.expand(2, 3), torch.ones(2, dtype=torch.bool), cams,
                             torch.Generator().manual_seed(0))
     assert eb.rays.tolist() == [0]                    # the bottom point has fewer than MIN_VIEWS views
@@ -245,7 +254,7 @@ def test_the_term_pulls_toward_the_targets_by_their_confidence():
     s = out.surface
     # the roughness is not pulled; the light of ray 5 toward +x by 0.4 (1 - cos)
     expected = (0.5 * (1.0 - s.metallic[2]) + 1.0 * s.metallic[5] + 0.4 * (1.0 - s.light_dir[5, 0])) / 2.0
-    assert float(got) == pytest.approx(float(expected), rel=1e-5)
+    assert float(got.detach()) == pytest.approx(float(expected.detach()), rel=1e-5)
     grads = torch.autograd.grad(got, [p for p in model.parameters()], allow_unused=True)
     reached = {name.split(".")[0] for (name, _), gr in zip(model.named_parameters(), grads)
                if gr is not None and gr.abs().sum() > 0}
@@ -258,9 +267,15 @@ def test_the_term_pulls_toward_the_targets_by_their_confidence():
         compute_losses(out, rays, loss_cfg, use_mask=False)
 
 
-def test_presets():
+def test_presets_and_the_bsdf_it_needs():
     assert paper().loss.w_material_evidence == 0     # not in the paper
     assert LossConfig().w_material_evidence == 0
+    cfg = fast()
+    cfg.loss.w_material_evidence = 1e-3
+    cfg.check()
+    cfg.render.bsdf_kind = "paper"
+    with pytest.raises(ValueError, match="bsdf_kind"):
+        cfg.check()
 
 
 def test_a_fast_fit_trains_the_term(tmp_path):
@@ -285,5 +300,11 @@ def test_a_fast_fit_trains_the_term(tmp_path):
         def after_step(self, run, step, out, losses):
             self.rows.append((out.material_evidence.rays.numel(), float(losses["loss_material_evidence"])))
 
-    fit(load_scene(tmp_path / "s" / "dtu"), tmp_path / "run", cfg, device="cpu", hooks=[Seen()])
+    scene = load_scene(tmp_path / "s" / "dtu")
+    fit(scene, tmp_path / "run", cfg, device="cpu", hooks=[Seen()])
     assert Seen.rows and any(m > 0 and v > 0 for m, v in Seen.rows)
+    # with the lobe off (a diffuse scene, or the rule dropped it) the metallic is not shaded: no evidence
+    Seen.rows = []
+    cfg.render.specular = False
+    fit(scene, tmp_path / "run_diffuse", cfg, device="cpu", hooks=[Seen()])
+    assert Seen.rows and all(m == 0 and v == 0 for m, v in Seen.rows)

@@ -244,7 +244,7 @@ class TrainingRun:
             out.colour_logits = torch.cat([out.colour_logits, z_bg])
         self._n_background_rays = 0 if background_rays is None else len(left_out)
         if loss_cfg.w_material_evidence > 0:
-            out.material_evidence = self._material_evidence(rays, out)
+            out.material_evidence = self._material_evidence(rays, out, rs.specular)
         points = None if self.surface_points is None else (lambda: self.surface_points.loss(model, self.gen))
         losses = compute_losses(out, rays, loss_cfg, use_mask=rs.use_mask_loss, specular=rs.specular,
                                 background=rs.background, background_rays=background_rays, surface_points=points)
@@ -265,10 +265,11 @@ class TrainingRun:
         self.step += 1
         return rays, out, losses
 
-    def _material_evidence(self, rays, out):
+    def _material_evidence(self, rays, out, specular: bool):
         """The material evidence (:mod:`nepf_core.render.material_evidence`) at some lit foreground
-        rays' surface points, for ``loss.w_material_evidence``."""
-        keep = foreground(out.weight_sum)
+        rays' surface points, for ``loss.w_material_evidence``; none once the lobe is dropped (the
+        shading then ignores the metallic, and the evidence is about the lobe)."""
+        keep = foreground(out.weight_sum) & specular
         if rays.mask is not None:
             keep = keep & (rays.mask > 0.5)
         if rays.unlit is not None:
