@@ -171,6 +171,10 @@ def fast() -> NePFConfig:
     ±3 (no saturated channel), metallic costs where its lobe is not seen (a texture cannot hide in a
     ``(1 - m)`` dimmer), and roughness and metallic share the albedo's smoothness prior; the
     trade-off is that a metal seen away from its highlight comes out dielectric (bench/RESULTS.md).
+    Against that prior, the metal evidence (``w_material_evidence``): at a few lit surface points a
+    step, the radiance network's colours from other training cameras fitted as a metal and as a
+    dielectric pull the metallic toward the kind that fits (docs/FAST.md, "Metal evidence from the
+    radiance field across views").
     Of the paper's light-variance terms only the intensity one (``lambda3``) stays: the two
     direction terms pull the light directions' spread toward the normals', which tilts ``l``
     toward ``n`` and moves the shading into the albedo (docs/FAST.md, "The light field's direction
@@ -190,8 +194,8 @@ def fast() -> NePFConfig:
                             eikonal_fraction=0.1, unlit_albedo_stopgrad=True, albedo_smooth_sigma=0.02,
                             surface_refine=True, bsdf_kind="gltf"),
         loss=LossConfig(w_hessian=0.0, w_surface_points=0.1, w_albedo_smooth=2e-4, w_albedo_flat=3e-6, w_brdf_smooth=2e-4,
-                        w_material_range=1e-4, w_colour_range=1e-2, w_metallic_unseen=1e-4, lambda4=0.0,
-                        lambda5=0.0),
+                        w_material_range=1e-4, w_colour_range=1e-2, w_metallic_unseen=1e-4,
+                        w_material_evidence=1e-3, lambda4=0.0, lambda5=0.0),
         train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,
                           anneal_end=2000, log_every=20, sync_every=500, checkpoint_every=1000,
                           eval_every_s=60.0, eval_stride=1, ema_decay=0.995, adaptive=True),

@@ -15,7 +15,7 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_range = w_material_range * mean_surf mean_k relu(|z_k| - z_max)   (z: material logits; off in paper)
     L_crange = w_colour_range * mean relu(|z| - z_c)   (z: radiance / background colour logits; off in paper)
     L_unseen = w_metallic_unseen * mean_lit m (1 - s)   (s: the lobe's share of L_surf, stop-grad; off in paper)
-    L_evid  = w_material_evidence * mean_p (q_m |m(x*) - m*| + q_l (1 - l(x*) . l*))
+    L_evid  = w_material_evidence * mean_p q_m |m(x*) - m*|
               (targets from the radiance field across views, render/material_evidence.py; off in paper)
     L_bg    = w_r * mean_{mask = 0} | srgb(L_r) - srgb(L_gt) |   (masks and a background model)
     L_points = w_surface_points * mean_p |f(p)|   (captures without masks, train/surface_points.py)
@@ -122,11 +122,11 @@ class LossConfig:
     images cannot tell the two apart, and without a prior the texture goes into metallic. Where
     the lobe carries the colour (a real metal: ``s ~ 1``) the term vanishes."""
     w_material_evidence: float = 0.0
-    """Pull the metallic and the light direction at a few lit surface points per step toward what
-    the radiance network's colours from other training cameras say they are
-    (:mod:`nepf_core.render.material_evidence`: the glTF BSDF fitted as a dielectric and as a metal
-    at several roughnesses and light directions, each at its own best albedo), each weighted by
-    how clearly its answer fits better. Not in the paper (0 in ``paper``)."""
+    """Pull the metallic at a few lit surface points per step toward what the radiance network's
+    colours from other training cameras say the point is (:mod:`nepf_core.render.material_evidence`:
+    the glTF BSDF fitted as a dielectric and as a metal at several roughnesses and light
+    directions, each at its own best albedo), weighted by how clearly one kind fits better. Not
+    in the paper (0 in ``paper``)."""
     w_surface_points: float = 0.0
     """Without masks: ``mean |f(p)|`` at the points triangulated from the images in the object
     region (:mod:`nepf_core.train.surface_points`, Geo-NeuS's sparse-point SDF loss). Not in the
@@ -349,10 +349,7 @@ def loss_material_evidence(b: LossBatch) -> Tensor:
     if eb.rays.numel() == 0:
         return b.zero
     s, ev = b.out.surface, eb.evidence
-    err = ev.metallic_confidence * (s.metallic[eb.rays] - ev.metallic).abs()
-    if ev.light_dir is not None:
-        err = err + ev.light_confidence * (1.0 - (s.light_dir[eb.rays] * ev.light_dir).sum(-1))
-    return err.mean()
+    return (ev.metallic_confidence * (s.metallic[eb.rays] - ev.metallic).abs()).mean()
 
 
 def loss_surface_points(b: LossBatch) -> Tensor:

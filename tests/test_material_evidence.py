@@ -129,26 +129,6 @@ def test_without_the_light_search_a_tilted_light_costs_metals():
     assert float(with_search.metallic[sure].mean()) > 0.95
 
 
-@pytest.mark.parametrize("albedo, roughness, metallic", [(GOLD, 0.2, 1.0), (RED, 0.3, 0.0)])
-def test_the_light_target_moves_a_tilted_light_toward_the_true_one(albedo, roughness, metallic):
-    """A learned light 30 deg off: where a lobe shows it, the best-fitting candidate is nearer the
-    true light (confidence-weighted median under 15 deg); at the true light the target stays
-    (almost no confident move)."""
-    g = torch.Generator().manual_seed(5)
-    n = _sphere_points(256, g)
-    l = _unit(torch.tensor([0.2, 0.1, 1.0])).expand_as(n)
-    v = _hemisphere_dirs(n, 8, g)
-    valid = (v * n[:, None]).sum(-1) > me.MIN_FACING_COS
-    c = _colours(n, l, v, torch.tensor(albedo).expand_as(n), roughness, torch.full((256,), metallic))
-    angle = lambda a: torch.rad2deg(torch.acos((a * l).sum(-1).clamp(-1, 1)))
-    tilted = me.material_evidence(c, n, _tilt(l, 30.0, g), v, valid)
-    sure = tilted.light_confidence > 0.1
-    assert float(sure.float().mean()) > 0.3
-    assert float(angle(tilted.light_dir)[sure].median()) < 15.0
-    right = me.material_evidence(c, n, l, v, valid)
-    assert float((right.light_confidence > 0.1).float().mean()) < 0.05
-
-
 def test_light_candidates_are_unit_and_tilted_by_the_stated_angles():
     l = _unit(torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.3, -0.5, 0.2]]))
     cand = me.light_candidates(l)
@@ -246,19 +226,17 @@ def test_the_term_pulls_toward_the_targets_by_their_confidence():
     out = render_rays(model, rays, cfg.render, train=True)
     ev = me.MaterialEvidence(metallic=torch.tensor([1.0, 0.0]), metallic_confidence=torch.tensor([0.5, 1.0]),
                              roughness=torch.tensor([0.2, 0.8]), roughness_confidence=torch.tensor([0.25, 0.0]),
-                             residual=torch.zeros(2, 14), light_dir=torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
-                             light_confidence=torch.tensor([0.0, 0.4]))
+                             residual=torch.zeros(2, 14))
     out.material_evidence = me.EvidenceBatch(rays=torch.tensor([2, 5]), evidence=ev)
     loss_cfg = dataclasses.replace(LossConfig(), w_material_evidence=1.0)
     got = compute_losses(out, rays, loss_cfg, use_mask=False)["loss_material_evidence"]
     s = out.surface
-    # the roughness is not pulled; the light of ray 5 toward +x by 0.4 (1 - cos)
-    expected = (0.5 * (1.0 - s.metallic[2]) + 1.0 * s.metallic[5] + 0.4 * (1.0 - s.light_dir[5, 0])) / 2.0
+    expected = (0.5 * (1.0 - s.metallic[2]) + 1.0 * s.metallic[5]) / 2.0     # the roughness is not pulled
     assert float(got.detach()) == pytest.approx(float(expected.detach()), rel=1e-5)
     grads = torch.autograd.grad(got, [p for p in model.parameters()], allow_unused=True)
     reached = {name.split(".")[0] for (name, _), gr in zip(model.named_parameters(), grads)
                if gr is not None and gr.abs().sum() > 0}
-    assert {"material", "photon"} <= reached <= {"material", "photon", "sdf"}
+    assert "material" in reached and reached <= {"material", "sdf"}     # not the light
     out.material_evidence = me.EvidenceBatch(rays=torch.zeros(0, dtype=torch.long),
                                              evidence=me._no_evidence(torch.zeros(1)))
     assert float(compute_losses(out, rays, loss_cfg, use_mask=False)["loss_material_evidence"]) == 0.0
@@ -271,7 +249,7 @@ def test_presets_and_the_bsdf_it_needs():
     assert paper().loss.w_material_evidence == 0     # not in the paper
     assert LossConfig().w_material_evidence == 0
     cfg = fast()
-    cfg.loss.w_material_evidence = 1e-3
+    assert cfg.loss.w_material_evidence > 0 and cfg.loss.w_metallic_unseen > 0   # beside the prior, not in place
     cfg.check()
     cfg.render.bsdf_kind = "paper"
     with pytest.raises(ValueError, match="bsdf_kind"):
