@@ -344,8 +344,7 @@ def loss_metallic_unseen(b: LossBatch) -> Tensor:
 
 
 def loss_material_evidence(b: LossBatch) -> Tensor:
-    eb = _needs(b.out.material_evidence, "w_material_evidence", "a training render with "
-                "RenderOutput.material_evidence (nepf_core.render.material_evidence)")
+    eb = b.out.material_evidence
     if eb.rays.numel() == 0:
         return b.zero
     s, ev = b.out.surface, eb.evidence
@@ -366,8 +365,9 @@ class LossTerm:
     fn: Callable[[LossBatch], Tensor]
     lobe_split: bool = False
     """The term reads :attr:`RenderOutput.lobe` (the render must be asked for it)."""
-    optional: bool = False
-    """Only present when the batch has what it reads (``surface_points``)."""
+    present: Callable[[LossBatch], bool] | None = None
+    """For a term whose input only some renders carry: whether this batch has it (the term is left
+    out otherwise). None: always present."""
 
 
 LOSS_TERMS: tuple[LossTerm, ...] = (
@@ -385,8 +385,10 @@ LOSS_TERMS: tuple[LossTerm, ...] = (
     LossTerm("loss_material_range", "w_material_range", loss_material_range),
     LossTerm("loss_colour_range", "w_colour_range", loss_colour_range),
     LossTerm("loss_metallic_unseen", "w_metallic_unseen", loss_metallic_unseen, lobe_split=True),
-    LossTerm("loss_material_evidence", "w_material_evidence", loss_material_evidence),
-    LossTerm("loss_surface_points", "w_surface_points", loss_surface_points, optional=True),
+    LossTerm("loss_material_evidence", "w_material_evidence", loss_material_evidence,
+             present=lambda b: b.out.material_evidence is not None),   # only the training step gathers it
+    LossTerm("loss_surface_points", "w_surface_points", loss_surface_points,
+             present=lambda b: b.surface_points is not None),
 )
 """Every term, in the order they are computed and summed."""
 
@@ -401,12 +403,13 @@ def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, spec
                    surface_points: Callable[[], Tensor] | None = None) -> dict[str, Tensor]:
     """Every term of :data:`LOSS_TERMS` by name (unweighted; 0 where its weight is 0), for one
     render ``out`` of ``rays``; arguments as :func:`loss_batch`. ``loss_surface_points`` is
-    present only with ``surface_points``. :func:`total_loss` sums them."""
+    present only with ``surface_points``, ``loss_material_evidence`` only when ``out`` carries the
+    evidence (the training step gathers it; a plain render does not). :func:`total_loss` sums them."""
     b = loss_batch(out, rays, cfg, use_mask=use_mask, specular=specular, background=background,
                    background_rays=background_rays, surface_points=surface_points)
     terms = {}
     for t in LOSS_TERMS:
-        if t.optional and b.surface_points is None:
+        if t.present is not None and not t.present(b):
             continue
         terms[t.name] = t.fn(b) if getattr(cfg, t.weight) > 0 else b.zero
     return terms
