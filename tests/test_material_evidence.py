@@ -225,7 +225,7 @@ def test_the_term_pulls_toward_the_targets_by_their_confidence():
     rays = RayBatch(origins=o, directions=d, rgb=torch.zeros(8, 3))
     out = render_rays(model, rays, cfg.render, train=True)
     ev = me.MaterialEvidence(metallic=torch.tensor([1.0, 0.0]), metallic_confidence=torch.tensor([0.5, 1.0]),
-                             roughness=torch.tensor([0.2, 0.8]), roughness_confidence=torch.tensor([0.25, 0.0]),
+                             roughness=torch.tensor([0.2, 0.8]),
                              residual=torch.zeros(2, 14))
     out.material_evidence = me.EvidenceBatch(rays=torch.tensor([2, 5]), evidence=ev)
     loss_cfg = dataclasses.replace(LossConfig(), w_material_evidence=1.0)

@@ -23,9 +23,8 @@ are not told apart. The evidence (:func:`material_evidence`):
 
 * metallic target ``m* = [e_metal < e_dielectric]`` with confidence
   ``q_m = |e_d - e_m| / max(e_d, e_m)`` (``e_d``, ``e_m``: each kind's best roughness);
-* roughness target ``r*`` (the best hypothesis's roughness) with confidence
-  ``q_r = 1 - e_best / max_r e(m*, r)``: how much the roughness matters to the fit (reported by
-  ``bench.evidence_report``, not trained: docs/FAST.md).
+* the best hypothesis's roughness ``r*`` (reported by ``bench.evidence_report``, not trained:
+  docs/FAST.md).
 
 With the light search (:func:`material_evidence`) each hypothesis is scored at the best of the
 learned direction and that direction tilted by :data:`LIGHT_TILTS_DEG` at
@@ -78,13 +77,12 @@ LIGHT_AZIMUTHS = 6
 
 @dataclass
 class MaterialEvidence:
-    """Per point (``P``): the targets and their confidences in [0, 1], and ``residual [P, H]``
-    (``H = 2 len(ROUGHNESS_GRID)``, dielectrics first)."""
+    """Per point (``P``): the metallic target and its confidence in [0, 1], the best hypothesis's
+    roughness, and ``residual [P, H]`` (``H = 2 len(ROUGHNESS_GRID)``, dielectrics first)."""
 
     metallic: Tensor
     metallic_confidence: Tensor
     roughness: Tensor
-    roughness_confidence: Tensor
     residual: Tensor
 
 
@@ -167,12 +165,9 @@ def evidence_from_residuals(e: Tensor) -> MaterialEvidence:
     metal = best_met < best_die
     q_m = (best_die - best_met).abs() / torch.maximum(best_die, best_met)
     grid = torch.tensor(ROUGHNESS_GRID, dtype=e.dtype, device=e.device)
-    e_kind = torch.where(metal[:, None], e_met, e_die)
-    best = torch.minimum(best_die, best_met)
-    q_r = 1.0 - best / e_kind.max(1).values
     rough = grid[torch.where(metal, i_met, i_die)]
     return MaterialEvidence(metallic=metal.to(e.dtype), metallic_confidence=q_m, roughness=rough,
-                            roughness_confidence=q_r, residual=e)
+                            residual=e)
 
 
 def light_candidates(l: Tensor) -> Tensor:
@@ -221,8 +216,7 @@ class EvidenceBatch:
 def _no_evidence(like: Tensor) -> MaterialEvidence:
     """Evidence at no point (a batch without a lit foreground ray: a dark start, a near-mirror)."""
     empty = like.new_zeros(0)
-    return MaterialEvidence(metallic=empty, metallic_confidence=empty, roughness=empty,
-                            roughness_confidence=empty, residual=like.new_zeros(0, 2 * len(ROUGHNESS_GRID)))
+    return MaterialEvidence(metallic=empty, metallic_confidence=empty, roughness=empty, residual=like.new_zeros(0, 2 * len(ROUGHNESS_GRID)))
 
 
 @torch.no_grad()
