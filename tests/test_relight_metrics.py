@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from nepf_core.evaluate import channel_scale
-from nepf_core.relight.metrics import mae, material_metrics, normal_mae_deg, relight_psnr
+from nepf_core.relight.metrics import displayed_range_scale, mae, material_metrics, normal_mae_deg, relight_psnr
 
 SRGB_HALF = 1.055 * 0.5 ** (1 / 2.4) - 0.055       # sRGB of linear 0.5 = 0.735357
 
@@ -44,10 +44,9 @@ def test_relight_scale_is_fitted_on_the_displayed_range():
 def test_one_hot_pixel_does_not_decide_the_scale():
     # 99 pixels predicted 1 where GT is 0.5, and one highlight predicted 1000 where GT is 1000.
     # Unclipped least squares: s = (99*0.5 + 1000*1000) / (99 + 1000^2) = 0.99995, so the 99
-    # pixels show 1.0 against 0.5. Displayed range: round 1 on clip(GT) gives
-    # s = (49.5 + 1000) / (99 + 1e6) = 1.0495e-3, the highlight shows 1.0495 >= 1 with GT >= 1
-    # and leaves the fit; round 2: s = 49.5 / 99 = 1/2, the highlight shows 500 and stays out:
-    # every pixel then matches, 100 dB (MSE floored at 1e-10).
+    # pixels show 1.0 against 0.5. Displayed: at s = 1/2 the highlight shows min(500, 1) = 1
+    # against min(1000, 1) = 1 and the 99 pixels 0.5 against 0.5: E = 0, every pixel matches,
+    # 100 dB (MSE floored at 1e-10).
     gt, pred = _img(*([0.5] * 99 + [1000.0])), _img(*([1.0] * 99 + [1000.0]))
     alpha = np.ones((1, 1, 100))
     unclipped = channel_scale(pred, gt, np.ones(pred.shape[:-1], bool))
@@ -55,6 +54,38 @@ def test_one_hot_pixel_does_not_decide_the_scale():
     value, scale = relight_psnr(pred, gt, alpha)
     assert scale.tolist() == pytest.approx([0.5] * 3)
     assert value == pytest.approx(100.0)
+
+
+def test_a_predicted_hot_pixel_does_not_decide_the_scale():
+    # 99 pixels predicted 1 where GT is 0.5, and one near-mirror highlight predicted 1000 where
+    # GT is 0.2 (a highlight the truth does not have). A fit on unclipped predictions against the
+    # clipped GT: s = (99*0.5 + 1000*0.2) / (99 + 1000^2) = 2.495e-4 (the highlight then shows
+    # 0.2495 and never saturates), so the 99 pixels show 2.5e-4 against 0.5. Displayed: for
+    # s >= 1e-3 the highlight shows 1 whatever s (cost (1 - 0.2)^2 = 0.64), and the 99 pixels
+    # cost 99 (s - 0.5)^2: s = 1/2, E = 0.64; below 1e-3, E > 99 * 0.499^2. PSNR: one pixel of
+    # 100 wrong, 1 against srgb(0.2) = 1.055 * 0.2^(1/2.4) - 0.055 = 0.484529.
+    gt, pred = _img(*([0.5] * 99 + [0.2])), _img(*([1.0] * 99 + [1000.0]))
+    value, scale = relight_psnr(pred, gt, np.ones((1, 1, 100)))
+    assert scale.tolist() == pytest.approx([0.5] * 3)
+    srgb_02 = 1.055 * 0.2 ** (1 / 2.4) - 0.055
+    assert srgb_02 == pytest.approx(0.484529, abs=1e-6)
+    assert value == pytest.approx(-10 * math.log10((1 - srgb_02) ** 2 / 100), abs=1e-9)
+
+
+def test_the_displayed_scale_is_the_minimum_of_the_displayed_error():
+    """Against a brute-force search: no scale on a dense grid shows a smaller clipped error."""
+    rng = np.random.default_rng(0)
+    for trial in range(20):
+        n = int(rng.integers(1, 200))
+        p = rng.lognormal(-1.0, 1.5, (n, 3)) * (rng.random((n, 3)) > 0.1)     # some zeros, some hot
+        g = rng.lognormal(-1.2, 1.0, (n, 3))
+        s = displayed_range_scale(p, g, np.ones(n, bool))
+        grid = np.concatenate([np.geomspace(1e-4, 1e4, 4001), s])
+        for c in range(3):
+            err = lambda k: ((np.minimum(k * p[:, c], 1.0) - np.minimum(g[:, c], 1.0)) ** 2).sum()
+            best = min(err(k) for k in grid)
+            assert err(s[c]) <= best + 1e-9, (trial, c)
+    assert displayed_range_scale(np.zeros((4, 3)), np.ones((4, 3)), np.ones(4, bool)).tolist() == [1.0] * 3
 
 
 def test_relight_scale_per_channel_over_all_lights_and_views():
