@@ -66,9 +66,9 @@ def eval_section(run, test, renders: dict, test_images: np.ndarray, test_masks: 
     if relight_dir:
         res.update(relight_scores(run, relight_dir, test, Path(out_dir) / "relight", device, max_side))
     res["relight_conventions"] = (
-        "relight_psnr: nepf relight under --relight's lights at --test's cameras, one least-squares scale per "
-        "colour channel over all lights, views and GT-alpha > 0.5 pixels, fitted on the displayed range (GT "
-        "clipped to [0, 1], values saturated on both sides left out), then clip, sRGB, PSNR; "
+        "relight_psnr: nepf relight under --relight's lights at --test's cameras, one scale per colour channel "
+        "over all lights, views and GT-alpha > 0.5 pixels, the one that minimises the displayed squared error "
+        "sum (min(s p, 1) - min(g, 1))^2, then clip, sRGB, PSNR; "
         "albedo_psnr(_lit): a least-squares per-channel alignment on the albedo over the GT foreground (its lit pixels); "
         "roughness/metallic MAE over the GT foreground; normal_mae_deg: mean angle to normal_world")
     return res
