@@ -53,11 +53,10 @@ def _best_clipped_scale(p: np.ndarray, g: np.ndarray) -> float:
     lit = p > 0
     if not lit.any():
         return 1.0
-    dark_cost = float((g[~lit] ** 2).sum())                  # p = 0 shows 0 at any scale
-    p, g = p[lit], g[lit]
-    order = np.argsort(1.0 / p)                               # saturation breakpoints, ascending
-    p, g = p[order], g[order]
-    t = 1.0 / p
+    p, g = p[lit], g[lit]                                     # p = 0 shows 0 at any scale: a constant cost
+    t = 1.0 / p                                               # saturation breakpoints
+    order = np.argsort(t)
+    p, g, t = p[order], g[order], t[order]
     sat = np.concatenate([[0.0], np.cumsum((1.0 - g) ** 2)])  # cost of the first k saturated
     pp = np.concatenate([np.cumsum((p * p)[::-1])[::-1], [0.0]])   # suffix sums: unsaturated
     pg = np.concatenate([np.cumsum((p * g)[::-1])[::-1], [0.0]])
@@ -65,7 +64,7 @@ def _best_clipped_scale(p: np.ndarray, g: np.ndarray) -> float:
     lo = np.concatenate([[0.0], t])                           # interval k: k values saturated
     hi = np.concatenate([t, [np.inf]])
     s = np.clip(np.where(pp > 0, pg / np.where(pp > 0, pp, 1.0), lo), lo, hi)
-    cost = dark_cost + sat + pp * s * s - 2.0 * pg * s + gg
+    cost = sat + pp * s * s - 2.0 * pg * s + gg
     return float(s[int(np.argmin(cost))])
 
 

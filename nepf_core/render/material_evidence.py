@@ -216,7 +216,8 @@ class EvidenceBatch:
 def _no_evidence(like: Tensor) -> MaterialEvidence:
     """Evidence at no point (a batch without a lit foreground ray: a dark start, a near-mirror)."""
     empty = like.new_zeros(0)
-    return MaterialEvidence(metallic=empty, metallic_confidence=empty, roughness=empty, residual=like.new_zeros(0, 2 * len(ROUGHNESS_GRID)))
+    return MaterialEvidence(metallic=empty, metallic_confidence=empty, roughness=empty,
+                            residual=like.new_zeros(0, 2 * len(ROUGHNESS_GRID)))
 
 
 @torch.no_grad()
