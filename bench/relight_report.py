@@ -45,9 +45,9 @@ def relight_table_lines(rows: list[dict]) -> list[str]:
                  + " | ".join(cells) + f" | {'n/a' if gap is None else f'{gap:.2f}'} |")
     L += ["", "Relight PSNR: the final model rendered by `nepf relight` under the scene's gt/relight lights "
               "at the gt/dtu_test cameras, one scale per colour channel over all lights, views and GT-foreground "
-              "pixels, the minimiser of the displayed error sum (min(s p, 1) - min(g, 1))^2 "
-              "(nepf_core.relight.metrics.displayed_range_scale), then clipped, sRGB, PSNR over those pixels. Oracle: the GT "
-              "maps shaded with the same BSDF and the GT mesh's shadows (bench/oracle.py), the ceiling our BSDF "
-              "sets. Albedo PSNR (a per-channel least-squares scale: an albedo has no highlights) over the GT foreground and its lit pixels; roughness / metallic "
-              "MAE over the GT foreground; normal MAE in degrees, world frame.", ""]
+              "pixels fitted on the displayed range (`nepf_core.relight.metrics.displayed_range_scale`), then "
+              "clipped, sRGB, PSNR over those pixels. Oracle: the GT maps shaded with the same BSDF and the GT "
+              "mesh's shadows (bench/oracle.py), the ceiling our BSDF sets. Albedo PSNR (a per-channel "
+              "least-squares scale: an albedo has no highlights) over the GT foreground and its lit pixels; "
+              "roughness / metallic MAE over the GT foreground; normal MAE in degrees, world frame.", ""]
     return L
