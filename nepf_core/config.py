@@ -174,7 +174,8 @@ def fast() -> NePFConfig:
     Against that prior, the metal evidence (``w_material_evidence``): at a few lit surface points a
     step, the radiance network's colours from other training cameras fitted as a metal and as a
     dielectric pull the metallic toward the kind that fits (docs/FAST.md, "Metal evidence from the
-    radiance field across views").
+    radiance field across views"), and a decaying per-region record of those calls lifts the
+    unseen-lobe prior where they say metal (``nepf_core/train/metal_record.py``).
     Of the paper's light-variance terms only the intensity one (``lambda3``) stays: the two
     direction terms pull the light directions' spread toward the normals', which tilts ``l``
     toward ``n`` and moves the shading into the albedo (docs/FAST.md, "The light field's direction

@@ -14,7 +14,8 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_bsm   = w_brdf_smooth * mean (|r(x*) - r(x* + eps)| + |m(x*) - m(x* + eps)|)   (off in paper)
     L_range = w_material_range * mean_surf mean_k relu(|z_k| - z_max)   (z: material logits; off in paper)
     L_crange = w_colour_range * mean relu(|z| - z_c)   (z: radiance / background colour logits; off in paper)
-    L_unseen = w_metallic_unseen * mean_lit m (1 - s)   (s: the lobe's share of L_surf, stop-grad; off in paper)
+    L_unseen = w_metallic_unseen * mean_lit m (1 - s) (1 - share)   (s: the lobe's share of L_surf, stop-grad;
+              share: the metal evidence recorded near x*, train/metal_record.py; off in paper)
     L_evid  = w_material_evidence * mean_p q_m |m(x*) - m*|
               (targets from the radiance field across views, render/material_evidence.py; off in paper)
     L_bg    = w_r * mean_{mask = 0} | srgb(L_r) - srgb(L_gt) |   (masks and a background model)
@@ -120,7 +121,10 @@ class LossConfig:
     A metal whose lobe the views never see (roughness near 0, so the highlight is a point that no
     pixel catches) only darkens its diffuse by ``(1 - m)``, which the albedo can do as well; the
     images cannot tell the two apart, and without a prior the texture goes into metallic. Where
-    the lobe carries the colour (a real metal: ``s ~ 1``) the term vanishes."""
+    the lobe carries the colour (a real metal: ``s ~ 1``) the term vanishes. With the metal
+    evidence on, the term is scaled by ``1 - share`` (:attr:`RenderOutput.metal_share`): it is
+    lifted where the evidence recorded in the region says metal (a metal seen away from its
+    highlight has ``s ~ 0`` too, and the prior alone turned every metal dielectric)."""
     w_material_evidence: float = 0.0
     """Pull the metallic at a few lit surface points per step toward what the radiance network's
     colours from other training cameras say the point is (:mod:`nepf_core.render.material_evidence`:
@@ -340,7 +344,10 @@ def loss_colour_range(b: LossBatch) -> Tensor:
 
 def loss_metallic_unseen(b: LossBatch) -> Tensor:
     lobe = _needs(b.out.lobe, "w_metallic_unseen", "a render with SurfaceRequest(lobe_split=True)")
-    return mean_where(b.out.surface.metallic * (1.0 - lobe.share.detach()), b.lit)
+    unseen = b.out.surface.metallic * (1.0 - lobe.share.detach())
+    if b.out.metal_share is not None:
+        unseen = unseen * (1.0 - b.out.metal_share)
+    return mean_where(unseen, b.lit)
 
 
 def loss_material_evidence(b: LossBatch) -> Tensor:

@@ -276,10 +276,33 @@ def test_a_fast_fit_trains_the_term(tmp_path):
 
         def after_step(self, run, step, out, losses):
             self.rows.append((out.material_evidence.rays.numel(), float(losses["loss_material_evidence"])))
+            # the record carries the evidence to every ray: a share per ray, recomputed here from
+            # the record's sums at the rays' surface points
+            rec = run.metal_record
+            i = rec.cells(out.surface.x)
+            want = rec.metal[i] / (rec.confidence[i] + rec.prior_confidence)
+            assert out.metal_share.shape == (len(out.weight_sum),) and torch.equal(out.metal_share, want)
+            self.record = (rec.metal.clone(), rec.confidence.clone())
 
     scene = load_scene(tmp_path / "s" / "dtu")
-    fit(scene, tmp_path / "run", cfg, device="cpu", hooks=[Seen()])
+    fit(scene, tmp_path / "run", cfg, device="cpu", hooks=[seen := Seen()])
     assert Seen.rows and any(m > 0 and v > 0 for m, v in Seen.rows)
+    assert float(seen.record[1].sum()) > 0     # evidence was recorded
+    # the checkpoint keeps the record, so that a resumed run does not start it over
+    saved = torch.load(tmp_path / "run" / "checkpoints" / "latest.pt", weights_only=False)["extra"]["metal_record"]
+    assert torch.equal(saved["metal"], seen.record[0]) and torch.equal(saved["confidence"], seen.record[1])
+
+    class Resumed(TrainHooks):
+        first = None
+
+        def before_step(self, run, step):
+            if self.first is None:
+                self.first = (run.metal_record.metal.clone(), run.metal_record.confidence.clone())
+
+    cfg.train.iters = 8
+    fit(scene, tmp_path / "run", cfg, device="cpu", resume=True, hooks=[resumed := Resumed()])
+    assert torch.equal(resumed.first[0], saved["metal"]) and torch.equal(resumed.first[1], saved["confidence"])
+    cfg.train.iters = 6
     # with the lobe off (a diffuse scene, or the rule dropped it) the metallic is not shaded: no evidence
     Seen.rows = []
     cfg.render.specular = False

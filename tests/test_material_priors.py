@@ -46,6 +46,10 @@ def test_metallic_unseen_by_hand():
     assert float(L["loss_metallic_unseen"].detach()) == pytest.approx((0.8 + 0.25) / 3)
     total_loss(L, cfg).backward()
     assert torch.allclose(metallic.grad, torch.tensor([1 / 3, 0.0, 0.5 / 3, 0.0]))
+    # where the metal record says metal the prior is lifted: m (1 - s) (1 - share)
+    out.metal_share = torch.tensor([0.75, 0.0, 0.2, 1.0])
+    L = compute_losses(out, rays, cfg, use_mask=True)
+    assert float(L["loss_metallic_unseen"].detach()) == pytest.approx((0.8 * 0.25 + 0.25 * 0.8) / 3)
     # the term reads the render's lobe split: a render not asked for it is an error, not a silent 0
     with pytest.raises(ValueError, match="lobe_split"):
         compute_losses(render_output(4, surface={"metallic": metallic}), rays, cfg, use_mask=True)

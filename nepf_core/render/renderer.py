@@ -138,6 +138,10 @@ class RenderOutput:
     """What the radiance field across views says the material is at some surface points
     (:class:`nepf_core.render.material_evidence.EvidenceBatch`); set by the training step when
     ``loss.w_material_evidence > 0`` (it knows the cameras), else None."""
+    metal_share: Tensor | None = None
+    """``[R]`` in ``[0, 1)``: how firmly the evidence recorded near each ray's surface point says
+    metal (:class:`nepf_core.train.metal_record.MetalRecord`), which lifts the unseen-lobe prior
+    there; set by the training step beside ``material_evidence``, else None (the prior in full)."""
     colour_logits: Tensor | None = None
     """``[K, 3]`` (training renders): the raw outputs before the sigmoid of every colour this render
     evaluated, the radiance network's at the shaded samples and the background's at its samples,

@@ -44,6 +44,7 @@ from nepf_core.train.decisions import Decision
 from nepf_core.train.clock import TrainClock
 from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
 from nepf_core.train.hooks import TrainHooks
+from nepf_core.train.metal_record import MetalRecord
 from nepf_core.train.metrics_log import MetricsLog, plot_error_vs_time, write_json_atomic
 from nepf_core.train.result import FitError, FitResult
 from nepf_core.train.rules.callback import DataContext, EvaluationContext, ModelContext, StepBatch, StepEnd, StepStart
@@ -123,6 +124,9 @@ class TrainingRun:
         points = data.surface_points   # without masks: where the images saw a surface
         self.surface_points = (SurfacePointPrior(points, dev) if cfg.loss.w_surface_points > 0 and points is not None
                                and len(points) else None)
+        # where the metal evidence said metal, the unseen-lobe prior is lifted (train/metal_record.py)
+        self.metal_record = (MetalRecord(dev) if cfg.loss.w_material_evidence > 0 and cfg.loss.w_metallic_unseen > 0
+                             else None)
         self.unlit_thr, decision = unlit_pixels(scene, cfg.render.unlit_albedo_stopgrad, tc.unlit_rel_threshold)
         self.adaptivity.log_decision(decision)
         self.adaptivity.on_model(ModelContext(self.model, scene))
@@ -157,6 +161,8 @@ class TrainingRun:
             setattr(self.run_state, k, v)
         if self.ema is not None and "ema" in extra:
             self.ema.load_state_dict(extra["ema"])
+        if self.metal_record is not None and "metal_record" in extra:
+            self.metal_record.load_state_dict(extra["metal_record"])
         self.say(f"resumed from step {self.step}")
         return float(st["wall_s"])
 
@@ -245,6 +251,10 @@ class TrainingRun:
         self._n_background_rays = 0 if background_rays is None else len(left_out)
         if loss_cfg.w_material_evidence > 0:
             out.material_evidence = self._material_evidence(rays, out, rs.specular)
+            if self.metal_record is not None:
+                ev, x = out.material_evidence.evidence, out.surface.x
+                self.metal_record.update(x[out.material_evidence.rays], ev.metallic, ev.metallic_confidence)
+                out.metal_share = self.metal_record.metal_share(x)
         points = None if self.surface_points is None else (lambda: self.surface_points.loss(model, self.gen))
         losses = compute_losses(out, rays, loss_cfg, use_mask=rs.use_mask_loss, specular=rs.specular,
                                 background=rs.background, background_rays=background_rays, surface_points=points)
@@ -346,6 +356,8 @@ class TrainingRun:
                      "camera_up": [float(c) for c in self.camera_up]}
             if self.ema is not None:
                 extra["ema"] = self.ema.state_dict()
+            if self.metal_record is not None:
+                extra["metal_record"] = self.metal_record.state_dict()
             kw = dict(model=self.model, optimizer=self.optimizer, step=self.step, wall_s=self.clock.wall(),
                       generator=self.gen, extra=extra)
             save_checkpoint(self.dir / "checkpoints" / f"ckpt_{self.step:07d}.pt", **kw)
