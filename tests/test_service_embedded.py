@@ -3,6 +3,7 @@ on a SQLite broker in the data dir. Real processes, real HTTP."""
 
 from __future__ import annotations
 
+import re
 
 import httpx
 import pytest
@@ -85,7 +86,9 @@ def _kill9_and_resume(base, h, data, api, tmp_path):
     r = upload(base, h, dataset_zip_bytes(tmp_path), {"preset": "tiny", "iters": 120})
     jid = r.json()["id"]
     wait_for(lambda: get_job(base, h, jid)["progress"]["step"] >= 32, 30, what="step 32")
-    pid = int([ln for ln in api.output().splitlines() if "worker pid" in ln][-1].split()[-1])
+    # the regex, not the line's last word: the worker child writes to the same pipe, and its log
+    # can run on after serve's line before a newline (seen once in CI)
+    pid = int(re.findall(r"worker pid (\d+)", api.output())[-1])
     os.kill(pid, signal.SIGKILL)
     data_dir = data
     killed_at = max_metric_step(data_dir, jid)
