@@ -87,7 +87,7 @@ def _kill9_and_resume(base, h, data, api, tmp_path):
     jid = r.json()["id"]
     wait_for(lambda: get_job(base, h, jid)["progress"]["step"] >= 32, 30, what="step 32")
     # the regex, not the line's last word: the worker child writes to the same pipe, and its log
-    # can run on after serve's line before a newline (seen once in CI)
+    # can run on after serve's line before the newline
     pid = int(re.findall(r"worker pid (\d+)", api.output())[-1])
     os.kill(pid, signal.SIGKILL)
     data_dir = data
