@@ -58,40 +58,61 @@ def world_cameras(scene) -> np.ndarray:
     return c2w
 
 
-def oracle_render(scene_dir, lights, bsdf_kind: str = "paper", shadows: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def oracle_render(scene_dir, lights, bsdf_kind: str = "paper", shadows: bool = True,
+                  maps: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The ground truth of ``scene_dir`` (``gt/dtu_test``, ``gt/arrays_test.npz``, ``gt/mesh.ply``)
     shaded under ``lights`` (:class:`nepf_core.relight.lights.PointLights`, world frame): returns
-    ``rgb [K, V, H, W, 3]`` float32 (composited by the GT alpha) and ``alpha [V, H, W]``."""
+    ``rgb [K, V, H, W, 3]`` float32 (composited by the GT alpha) and ``alpha [V, H, W]``.
+
+    ``maps``: per-view maps that replace the GT's of the same key (:func:`oracle_renders`)."""
+    rgbs, alpha = oracle_renders(scene_dir, lights, bsdf_kind, shadows, [maps or {}])
+    return rgbs[0], alpha
+
+
+def oracle_renders(scene_dir, lights, bsdf_kind: str, shadows: bool,
+                   map_sets: list[dict]) -> tuple[list[np.ndarray], np.ndarray]:
+    """:func:`oracle_render` once per entry of ``map_sets``, each a dict of per-view maps that
+    replace the GT's of the same key (``albedo [V, H, W, 3]``, ``roughness``, ``metallic
+    [V, H, W]``, ``normal_world [V, H, W, 3]``, world frame; ``{}``: the GT itself), all shaded
+    at the GT's points with the GT's shadows: one mesh ray cast per view and light from the GT
+    point along the GT normal, shared by every set (:mod:`bench.relight_attribution`)."""
     import trimesh
 
     from nepf_core.data.detect import load_scene
     from nepf_core.relight.shade import ShadeOptions, SurfaceSamples, shade_under_lights
     gt_dir = Path(scene_dir) / "gt"
     scene = load_scene(gt_dir / "dtu_test")
-    maps = dict(np.load(gt_dir / "arrays_test.npz"))
+    gt_maps = dict(np.load(gt_dir / "arrays_test.npz"))
     mesh = trimesh.load(gt_dir / "mesh.ply", force="mesh")
-    vis = MeshShadows(mesh.vertices, mesh.faces).visibility(SHADOW_OFFSET * scene.world_scale()) if shadows else None
+    cast = MeshShadows(mesh.vertices, mesh.faces).visibility(SHADOW_OFFSET * scene.world_scale()) if shadows else None
     c2w = world_cameras(scene)
     P = torch.from_numpy(lights.positions).float()
     I = torch.from_numpy(lights.intensities).float()
-    alpha = maps["alpha"].astype(np.float32)
+    alpha = gt_maps["alpha"].astype(np.float32)
     V, H, W = alpha.shape
-    rgb = np.zeros((len(lights), V, H, W, 3), np.float32)
+    rgbs = [np.zeros((len(lights), V, H, W, 3), np.float32) for _ in map_sets]
 
     def t(a):
         return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+
+    def unit(n):
+        n = n.astype(np.float64)
+        return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
     for v in range(V):
         fg = alpha[v] > 0
-        x = depth_to_world(maps["depth_z"][v].astype(np.float64), scene.intrinsics[v].astype(np.float64), c2w[v])[fg]
+        x = depth_to_world(gt_maps["depth_z"][v].astype(np.float64), scene.intrinsics[v].astype(np.float64), c2w[v])[fg]
         view = x - c2w[v][:3, 3]
         view /= np.linalg.norm(view, axis=-1, keepdims=True)
-        n = maps["normal_world"][v][fg].astype(np.float64)
-        n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
-        s = SurfaceSamples(t(x), t(n), t(view), t(maps["albedo"][v][fg]), t(maps["roughness"][v][fg]),
-                           t(maps["metallic"][v][fg]))
-        L = shade_under_lights(s, P, I, ShadeOptions(kind=bsdf_kind), vis).numpy()
-        rgb[:, v][:, fg] = L * alpha[v][fg][None, :, None]
-    return rgb, alpha
+        n_gt = t(unit(gt_maps["normal_world"][v][fg]))
+        seen = None if cast is None else [cast(t(x), n_gt, P[k]) for k in range(len(lights))]
+        vis = None if seen is None else (lambda _x, _n, p: seen[int((P == p).all(-1).nonzero()[0, 0])])
+        for rgb, replaced in zip(rgbs, map_sets):
+            m = {**gt_maps, **replaced}
+            s = SurfaceSamples(t(x), t(unit(m["normal_world"][v][fg])), t(view), t(m["albedo"][v][fg]),
+                               t(m["roughness"][v][fg]), t(m["metallic"][v][fg]))
+            L = shade_under_lights(s, P, I, ShadeOptions(kind=bsdf_kind), vis).numpy()
+            rgb[:, v][:, fg] = L * alpha[v][fg][None, :, None]
+    return rgbs, alpha
 
 
 def oracle_scene(scene_dir, bsdf_kind: str = "paper", shadows: bool = True) -> dict:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import shutil
 import signal
 import socket
@@ -40,6 +41,13 @@ def wait_for(pred: Callable[[], object], timeout: float, interval: float = 0.1, 
             last_exc = exc
         time.sleep(interval)
     raise TimeoutError(f"timed out after {timeout}s waiting for {what}" + (f" (last error: {last_exc})" if last_exc else ""))
+
+
+def worker_pids(output: str) -> list[int]:
+    """Every embedded worker pid ``nepf serve`` announced in ``output`` ("[nepf serve] worker pid N",
+    api/commands.py), oldest first. A regex, not the line's last word: the worker child writes to
+    the same pipe, and its log can run on after serve's line before the newline."""
+    return [int(p) for p in re.findall(r"worker pid (\d+)", output)]
 
 
 def free_port() -> int:

@@ -11,7 +11,8 @@ import sys
 
 import httpx
 
-from service_fixtures import REAL_PIPELINE_ENV, REPO, Proc, free_port, service_env, wait_for, wait_status
+from service_fixtures import (REAL_PIPELINE_ENV, REPO, Proc, free_port, service_env, wait_for, wait_status,
+                              worker_pids)
 
 
 def _start_demo(data, tmp_path, port, name):
@@ -23,7 +24,7 @@ def _start_demo(data, tmp_path, port, name):
 def _stop_and_check_gone(demo: Proc, base: str) -> None:
     """SIGTERM to the demo alone (not its process group): it must stop the server and its worker."""
     out = demo.output()
-    worker_pids = [int(m) for m in re.findall(r"worker pid (\d+)", out)]
+    pids = worker_pids(out)
     os.kill(demo.pid, signal.SIGTERM)
     demo.p.wait(30)
     assert demo.p.returncode == 0, demo.output()
@@ -35,7 +36,7 @@ def _stop_and_check_gone(demo: Proc, base: str) -> None:
         except httpx.TransportError:
             return True
     wait_for(port_closed, 15, what="the demo's server to stop")
-    for pid in worker_pids:
+    for pid in pids:
         def gone(pid=pid):
             try:
                 os.kill(pid, 0)

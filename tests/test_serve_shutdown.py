@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import signal
 import sqlite3
 from pathlib import Path
@@ -25,7 +24,7 @@ from pathlib import Path
 import pytest
 
 from service_fixtures import (Proc, dataset_zip_bytes, get_job, local_token, new_job, service_env, start_api,
-                              start_worker, upload, wait_for, wait_status)
+                              start_worker, upload, wait_for, wait_status, worker_pids)
 
 STEP_S = 0.1
 ENV = dict(NEPF_PIPELINE="service_fixtures:fake_pipeline", NEPF_FAKE_STEP_S=str(STEP_S), NEPF_LEASE_S="3",
@@ -68,7 +67,7 @@ class Procs:
 
     def worker_pid(self, api: Proc) -> int:
         """The embedded worker's pid, once it holds the data-dir lock (so it is past its start)."""
-        pid = wait_for(lambda: ([int(p) for p in re.findall(r"worker pid (\d+)", api.output())] or [None])[-1],
+        pid = wait_for(lambda: (worker_pids(api.output()) or [None])[-1],
                        30, 0.1, what="the worker pid in serve's output")
         self.worker_pids.append(pid)
         return pid

@@ -3,13 +3,12 @@ on a SQLite broker in the data dir. Real processes, real HTTP."""
 
 from __future__ import annotations
 
-import re
 
 import httpx
 import pytest
 
 from service_fixtures import (REAL_ITERS, REAL_PIPELINE_ENV, max_metric_step, real_scene_zip, check_lifecycle, dataset_zip_bytes, get_job, local_token, service_env, start_api,
-                              upload, wait_for, wait_status)
+                              upload, wait_for, wait_status, worker_pids)
 
 FAST = dict(NEPF_PIPELINE="service_fixtures:fake_pipeline", NEPF_LEASE_S="3", NEPF_HEARTBEAT_S="0.3",
             NEPF_RECONCILE_INTERVAL_S="1")
@@ -86,9 +85,7 @@ def _kill9_and_resume(base, h, data, api, tmp_path):
     r = upload(base, h, dataset_zip_bytes(tmp_path), {"preset": "tiny", "iters": 120})
     jid = r.json()["id"]
     wait_for(lambda: get_job(base, h, jid)["progress"]["step"] >= 32, 30, what="step 32")
-    # the regex, not the line's last word: the worker child writes to the same pipe, and its log
-    # can run on after serve's line before the newline
-    pid = int(re.findall(r"worker pid (\d+)", api.output())[-1])
+    pid = worker_pids(api.output())[-1]
     os.kill(pid, signal.SIGKILL)
     data_dir = data
     killed_at = max_metric_step(data_dir, jid)
