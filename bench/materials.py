@@ -10,7 +10,10 @@ runs ``fast`` (one subprocess per scene, one at a time: :mod:`bench.run`) on the
 * the learned light's median direction error on the lit foreground (:mod:`bench.shading_report`);
 * held-out PBR (masked) and the steps trained;
 
-then the suite's mean gap and its worst scene. ``python -m bench materials --table DIR [--against
+then the suite's mean gap and its worst scene, and a second table of where each scene's gap lies:
+the dB the oracle loses when one of the run's channels (albedo, roughness, metallic, normal) or a
+set of them replaces the ground truth's (:mod:`bench.relight_attribution`), and the rest of the gap
+(the run's own mesh: positions, silhouette, shadows). ``python -m bench materials --table DIR [--against
 BASE]`` prints the table of a finished suite and, against a baseline suite, the rule a preset
 change has to pass: **the mean gap improves and no scene's relight gets worse by more than its
 noise** (``NOISE_DB``, the spread of a second seed; give ``--seeds 0,1`` to measure it).
@@ -63,6 +66,38 @@ def format_table(rows: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+COST_COLUMNS = ("albedo", "roughness", "metallic", "normal", "materials", "all four")
+"""The attribution's rows (:data:`bench.relight_attribution.CHANNELS`), in the table's order."""
+
+
+def cost_rows(results_dir: Path) -> dict[str, dict]:
+    """``{scene: {channel: dB, "geometry": dB}}`` (medians over seeds) of a finished suite:
+    ``relight_cost_db`` of each run and ``geometry`` = the gap minus the cost of all four channels."""
+    from bench.curves import _median
+    runs = json.loads((Path(results_dir) / "results.json").read_text())["runs"]
+    per_scene: dict[str, list[dict]] = {}
+    for r in runs:
+        ev = r.get("relight_eval") or {}
+        cost = ev.get("relight_cost_db")
+        if not cost:
+            continue
+        row = {k: cost.get(k) for k in COST_COLUMNS}
+        if None not in (ev.get("relight_oracle_psnr"), ev.get("relight_psnr"), cost.get("all four")):
+            row["geometry"] = ev["relight_oracle_psnr"] - ev["relight_psnr"] - cost["all four"]
+        per_scene.setdefault(r["scene"], []).append(row)
+    return {s: {k: _median([row.get(k) for row in rows]) for k in (*COST_COLUMNS, "geometry")}
+            for s, rows in per_scene.items()}
+
+
+def format_cost_table(costs: dict[str, dict]) -> str:
+    """Markdown: dB below the oracle with only that channel (or set) from the run."""
+    cols = (*COST_COLUMNS, "geometry")
+    lines = ["| scene | " + " | ".join(cols) + " |", "|" + "---|" * (len(cols) + 1)]
+    for scene, row in costs.items():
+        lines.append(f"| {scene} | " + " | ".join("n/a" if row.get(k) is None else f"{row[k]:.2f}" for k in cols) + " |")
+    return "\n".join(lines)
+
+
 def verdict(candidate: dict[str, dict], baseline: dict[str, dict], noise_db: float = NOISE_DB) -> tuple[bool, str]:
     """``(adopt, why)``: adopt when the mean gap over the scenes both suites scored is lower and no
     scene's relight PSNR dropped by more than ``noise_db``."""
@@ -112,6 +147,11 @@ def main(argv: list[str] | None = None) -> int:
             return code
     rows = suite_rows(a.table or a.out)
     print(format_table(rows))
+    costs = cost_rows(a.table or a.out)
+    if costs:
+        print("\nrelight cost by channel: dB below the oracle with only that channel (or set) from the run; "
+              "geometry: the rest of the gap (the run's mesh, silhouette, shadows)\n")
+        print(format_cost_table(costs))
     if a.against is not None:
         adopt, why = verdict(rows, suite_rows(a.against))
         print(f"\nagainst {a.against}: {'adopt' if adopt else 'do not adopt'}: {why}")

@@ -5,8 +5,10 @@ A synthetic child run whose scene has ``gt/relight`` calls :func:`relight_metric
 ``gt/arrays_test.npz`` (albedo PSNR all / lit, roughness / metallic MAE, normal MAE), ``nepf
 relight`` under ``gt/relight/lights.json`` scored with the relight PSNR, the learned light's
 median direction error on the lit foreground (:func:`bench.shading_report.shading_rows`, all
-albedos), and the oracle (:func:`bench.oracle.oracle_scene`) with the same BSDF kind, so that the gap reads as "ours
-against the best our BSDF can do".
+albedos), and the oracle (:func:`bench.oracle.oracle_render`) with the same BSDF kind, so that the gap reads as "ours
+against the best our BSDF can do", with what each of the run's channels costs alone
+(``relight_cost_db``: the oracle's PSNR minus the oracle's with that channel from the run,
+:mod:`bench.relight_attribution`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 KEYS = ("relight_psnr", "relight_oracle_psnr", "relight_scale", "relight_bsdf", "albedo_psnr", "albedo_psnr_lit",
-        "roughness_mae", "metallic_mae", "normal_mae_deg", "light_dir_error_deg_median")
+        "roughness_mae", "metallic_mae", "normal_mae_deg", "light_dir_error_deg_median", "relight_cost_db")
 """What :func:`relight_metrics` reports (plus ``seconds``)."""
 
 
@@ -29,7 +31,7 @@ def has_relight_truth(scene_dir) -> bool:
 def relight_metrics(run_dir, scene_dir, device: str = "cpu") -> dict:
     """Scores of the run in ``run_dir`` on the scene ``scene_dir`` (module docstring); renders go to
     ``run_dir/relight_eval``."""
-    from bench.oracle import oracle_scene
+    from bench.relight_attribution import CHANNELS, attribution
     from nepf_core.cli import render_run
     from nepf_core.relight.evaluation import eval_section
     t0 = time.perf_counter()
@@ -40,7 +42,10 @@ def relight_metrics(run_dir, scene_dir, device: str = "cpu") -> dict:
     scene = info["scene"]
     res = eval_section(run_dir, gt / "dtu_test", renders, scene.images, scene.masks, out,
                        relight_dir=gt / "relight", gt_maps=gt / "arrays_test.npz", device=device)
-    res["relight_oracle_psnr"] = oracle_scene(scene_dir, res["relight_bsdf"])["relight_psnr"]
+    rows = attribution(Path(scene_dir), renders, res["relight_bsdf"])   # its "oracle" row is the oracle
+    res["relight_oracle_psnr"] = rows["oracle"]
+    res["relight_cost_db"] = {k: rows["oracle"] - v for k, v in rows.items() if k in CHANNELS}
+    res["relight_cost_db"]["missed_pixels"] = rows["missed_pixels"]
     from bench.shading_report import shading_rows
     res["light_dir_error_deg_median"] = shading_rows(Path(run_dir), Path(scene_dir), 0.0)["light_dir_error_deg_median"]
     res["seconds"] = time.perf_counter() - t0

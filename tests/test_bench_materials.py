@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from bench.materials import format_table, suite_rows, verdict
+from bench.materials import cost_rows, format_cost_table, format_table, suite_rows, verdict
 
 
 def _run(scene, relight, oracle, psnr, steps=100, seed=0):
@@ -42,3 +42,19 @@ def test_verdict_adopts_a_lower_mean_gap_with_no_scene_worse():
 def test_verdict_refuses_a_trade_or_no_gain(cand):
     adopt, why = verdict(_rows(cand), _rows({"a": (20.0, 25.0), "b": (10.0, 24.0)}))
     assert not adopt, why
+
+
+def test_cost_rows_take_the_median_and_the_geometry_is_the_rest_of_the_gap(tmp_path):
+    runs = []
+    for seed, (relight, albedo, all_four) in enumerate([(20.0, 1.0, 3.0), (21.0, 2.0, 2.0), (23.0, 6.0, 1.0)]):
+        r = _run("a", relight, 25.0, 30.0, seed=seed)
+        r["relight_eval"]["relight_cost_db"] = {"albedo": albedo, "roughness": 0.5, "metallic": 0.0, "normal": 1.5,
+                                                "materials": 1.5, "all four": all_four, "missed_pixels": 3}
+        runs.append(r)
+    runs.append(_run("b", 10.0, 24.0, 18.0))            # a run scored before the attribution: no row
+    (tmp_path / "results.json").write_text(json.dumps({"runs": runs}))
+    costs = cost_rows(tmp_path)
+    assert set(costs) == {"a"}
+    # geometry per seed: gaps 5, 4, 2 minus all four 3, 2, 1 -> 2, 2, 1; medians of each column
+    assert costs["a"]["albedo"] == 2.0 and costs["a"]["all four"] == 2.0 and costs["a"]["geometry"] == 2.0
+    assert "| a | 2.00 | 0.50 | 0.00 | 1.50 | 1.50 | 2.00 | 2.00 |" in format_cost_table(costs)

@@ -153,6 +153,10 @@ def test_bench_child_scores_and_table(scene, run, tmp_path):
     assert ev["relight_bsdf"] == "paper" and np.isfinite(ev["relight_psnr"]) and ev["relight_psnr"] < 100
     relit = np.load(run / "relight_eval" / "relight" / "arrays.npz")["rgb_linear"]
     assert ev["relight_psnr"] == pytest.approx(relight_psnr(relit, gt_rgb, gt_alpha)[0], abs=1e-9)
+    # where the gap lies (bench/relight_attribution.py, tested there): each channel's cost, finite
+    from bench.relight_attribution import CHANNELS
+    cost = ev["relight_cost_db"]
+    assert set(cost) == {*CHANNELS, "missed_pixels"} and all(np.isfinite(v) for v in cost.values())
     row = {"scene": "s", "config": "tiny", "variant": "base",
            **relight_row([{"relight_eval": ev}, {"relight_eval": {**ev, "relight_psnr": ev["relight_psnr"] + 2.0}}])}
     assert row["relight"]["relight_psnr"] == pytest.approx(ev["relight_psnr"] + 1.0)   # median of two
