@@ -27,6 +27,8 @@ import sys
 from pathlib import Path
 from statistics import mean
 
+from bench.relight_attribution import CHANNELS
+
 SUITE = ("sphere_diffuse", "torus_glossy", "spot_textured", "bunny_metal", "spot_svbrdf", "torus_stiff")
 """One scene of each kind: diffuse, glossy dielectric, textured, metal, metal beside dielectric, stiff."""
 NOISE_DB = 0.5
@@ -37,19 +39,30 @@ COLUMNS = (("relight_oracle_psnr", "oracle", 2), ("relight_psnr", "relight", 2),
            ("light_dir_error_deg_median", "light deg", 1), ("test_psnr", "PBR masked", 2), ("steps", "steps", 0))
 
 
+def per_scene_medians(results_dir: Path, row_of, keys) -> dict[str, dict]:
+    """``{scene: {key: median over seeds}}`` of a finished suite (``results.json``): ``row_of(run)``
+    gives each run's values (None: the run has no row)."""
+    from bench.curves import _median
+    per_scene: dict[str, list[dict]] = {}
+    for r in json.loads((Path(results_dir) / "results.json").read_text())["runs"]:
+        row = row_of(r)
+        if row is not None:
+            per_scene.setdefault(r["scene"], []).append(row)
+    return {s: {k: _median([row.get(k) for row in rows]) for k in keys} for s, rows in per_scene.items()}
+
+
 def suite_rows(results_dir: Path) -> dict[str, dict]:
     """``{scene: row}`` of a finished suite (``results.json``), each value the median over seeds."""
-    from bench.curves import _median, final_test
-    runs = json.loads((Path(results_dir) / "results.json").read_text())["runs"]
-    per_scene: dict[str, list[dict]] = {}
-    for r in runs:
+    from bench.curves import final_test
+
+    def row_of(r):
         ev = dict(r.get("relight_eval") or {})
         row = {k: ev.get(k) for k, _, _ in COLUMNS}
         if row["relight_psnr"] is not None and row["relight_oracle_psnr"] is not None:
             row["gap"] = row["relight_oracle_psnr"] - row["relight_psnr"]
         row["test_psnr"], row["steps"] = final_test(r).get("test_psnr"), r.get("steps")
-        per_scene.setdefault(r["scene"], []).append(row)
-    return {s: {k: _median([row[k] for row in rows]) for k, _, _ in COLUMNS} for s, rows in per_scene.items()}
+        return row
+    return per_scene_medians(results_dir, row_of, [k for k, _, _ in COLUMNS])
 
 
 def format_table(rows: dict[str, dict]) -> str:
@@ -66,32 +79,28 @@ def format_table(rows: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
-COST_COLUMNS = ("albedo", "roughness", "metallic", "normal", "materials", "all four")
-"""The attribution's rows (:data:`bench.relight_attribution.CHANNELS`), in the table's order."""
+COST_COLUMNS = (*CHANNELS, "geometry")
+"""The attribution's rows (:data:`bench.relight_attribution.CHANNELS`) and the rest of the gap."""
 
 
 def cost_rows(results_dir: Path) -> dict[str, dict]:
     """``{scene: {channel: dB, "geometry": dB}}`` (medians over seeds) of a finished suite:
     ``relight_cost_db`` of each run and ``geometry`` = the gap minus the cost of all four channels."""
-    from bench.curves import _median
-    runs = json.loads((Path(results_dir) / "results.json").read_text())["runs"]
-    per_scene: dict[str, list[dict]] = {}
-    for r in runs:
+    def row_of(r):
         ev = r.get("relight_eval") or {}
         cost = ev.get("relight_cost_db")
         if not cost:
-            continue
-        row = {k: cost.get(k) for k in COST_COLUMNS}
+            return None
+        row = {k: cost.get(k) for k in CHANNELS}
         if None not in (ev.get("relight_oracle_psnr"), ev.get("relight_psnr"), cost.get("all four")):
             row["geometry"] = ev["relight_oracle_psnr"] - ev["relight_psnr"] - cost["all four"]
-        per_scene.setdefault(r["scene"], []).append(row)
-    return {s: {k: _median([row.get(k) for row in rows]) for k in (*COST_COLUMNS, "geometry")}
-            for s, rows in per_scene.items()}
+        return row
+    return per_scene_medians(results_dir, row_of, COST_COLUMNS)
 
 
 def format_cost_table(costs: dict[str, dict]) -> str:
     """Markdown: dB below the oracle with only that channel (or set) from the run."""
-    cols = (*COST_COLUMNS, "geometry")
+    cols = COST_COLUMNS
     lines = ["| scene | " + " | ".join(cols) + " |", "|" + "---|" * (len(cols) + 1)]
     for scene, row in costs.items():
         lines.append(f"| {scene} | " + " | ".join("n/a" if row.get(k) is None else f"{row[k]:.2f}" for k in cols) + " |")

@@ -108,7 +108,8 @@ def oracle_renders(scene_dir, lights, bsdf_kind: str, shadows: bool,
         vis = None if seen is None else (lambda _x, _n, p: seen[int((P == p).all(-1).nonzero()[0, 0])])
         for rgb, replaced in zip(rgbs, map_sets):
             m = {**gt_maps, **replaced}
-            s = SurfaceSamples(t(x), t(unit(m["normal_world"][v][fg])), t(view), t(m["albedo"][v][fg]),
+            n = t(unit(m["normal_world"][v][fg])) if "normal_world" in replaced else n_gt
+            s = SurfaceSamples(t(x), n, t(view), t(m["albedo"][v][fg]),
                                t(m["roughness"][v][fg]), t(m["metallic"][v][fg]))
             L = shade_under_lights(s, P, I, ShadeOptions(kind=bsdf_kind), vis).numpy()
             rgb[:, v][:, fg] = L * alpha[v][fg][None, :, None]
