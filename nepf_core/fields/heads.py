@@ -32,35 +32,10 @@ class HeadConfig:
     """Positional-encoding frequencies for x (0: raw x)."""
     n_freqs_v: int = 4
     """Positional-encoding frequencies for the view direction (radiance only; NeuS: 4)."""
-    use_normal: bool = True
-    """Photon only: read the normal (paper: yes). The light arriving at a point depends on where
-    the point is, not on how its surface turns; a field that reads ``n`` can tilt ``l`` toward
-    ``n`` where the surface turns away and so flatten the shading ``n.l`` into the albedo."""
-    view_input: str = "direction"
-    """Radiance only. ``"direction"``: the ray direction ``v`` (NeuS/IDR, the paper).
-    ``"reflected"``: the reflection of the ray about the unit normal, ``r = v - 2 (v.n) n``,
-    plus ``n.v`` (Ref-NeRF): see :func:`reflected_view`."""
     use_feature: bool = True
     """Read the SDF feature vector (paper: yes). The fast preset's photon network sets this
     False so the light field is a smooth function of (x, n) and cannot copy surface texture
     into the intensity (texture then has to go to the albedo)."""
-
-
-def reflected_view(v: Tensor, n: Tensor) -> Tensor:
-    """The radiance network's view input in Ref-NeRF's parametrisation: ``[N, 4]``, the ray
-    ``v [N, 3]`` (camera to point) reflected about the unit normal of ``n [N, 3]`` (any length),
-
-        r = v - 2 (v.n) n,        input = (r, n.v)
-
-    Why: a highlight sits where ``r`` points at the light, so as a function of ``v`` it moves
-    across the surface with the normal and needs high frequencies, while as a function of ``r``
-    it is the same low-frequency lobe at every point (Verbin et al. 2022, Ref-NeRF; Ref-NeuS).
-    The colour loss then also reaches the normal through ``r``, so a shiny surface's highlights
-    shape its geometry instead of being painted onto the wrong one. ``n.v`` carries the Fresnel
-    and the grazing darkening the lobe's shape does not."""
-    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-    vn = (v * n).sum(-1, keepdim=True)
-    return torch.cat([v - 2.0 * vn * n, vn], dim=-1)
 
 
 class RadianceField(nn.Module):
@@ -68,24 +43,16 @@ class RadianceField(nn.Module):
 
     def __init__(self, cfg: HeadConfig, feature_dim: int) -> None:
         super().__init__()
-        if cfg.view_input not in ("direction", "reflected", "reflected_detached"):
-            raise ValueError(f"model.radiance.view_input must be \"direction\" or \"reflected\", "
-                             f"not {cfg.view_input!r}")
         self.cfg = cfg
-        d_view = encoding_dim(3, cfg.n_freqs_v) + (1 if cfg.view_input.startswith("reflected") else 0)
-        d_in = encoding_dim(3, cfg.n_freqs_x) + d_view + 3 + feature_dim
+        d_in = encoding_dim(3, cfg.n_freqs_x) + encoding_dim(3, cfg.n_freqs_v) + 3 + feature_dim
         self.mlp = build_mlp(MLPConfig(in_dim=d_in, out_dim=3, width=cfg.width, depth=cfg.depth,
                                        activation=cfg.activation))
 
     def forward(self, x: Tensor, v: Tensor, n: Tensor, feature: Tensor, *, with_logits: bool = False):
         """``rgb [N, 3]``; with ``with_logits`` also ``z [N, 3]`` before the sigmoid (for
         :attr:`nepf_core.losses.LossConfig.w_colour_range`)."""
-        if self.cfg.view_input.startswith("reflected"):
-            rv = reflected_view(v, n.detach() if self.cfg.view_input == "reflected_detached" else n)
-            view = torch.cat([positional_encoding(rv[:, :3], self.cfg.n_freqs_v), rv[:, 3:]], dim=-1)
-        else:
-            view = positional_encoding(v, self.cfg.n_freqs_v)
-        h = torch.cat([positional_encoding(x, self.cfg.n_freqs_x), view, n, feature], dim=-1)
+        h = torch.cat([positional_encoding(x, self.cfg.n_freqs_x),
+                       positional_encoding(v, self.cfg.n_freqs_v), n, feature], dim=-1)
         z = self.mlp(h)
         return (torch.sigmoid(z), z) if with_logits else torch.sigmoid(z)
 
@@ -106,7 +73,7 @@ class PhotonField(nn.Module):
     def __init__(self, cfg: HeadConfig, feature_dim: int, init_intensity: float = 3.0) -> None:
         super().__init__()
         self.cfg = cfg
-        d_in = encoding_dim(3, cfg.n_freqs_x) + (3 if cfg.use_normal else 0) + (feature_dim if cfg.use_feature else 0)
+        d_in = encoding_dim(3, cfg.n_freqs_x) + 3 + (feature_dim if cfg.use_feature else 0)
         self.mlp = build_mlp(MLPConfig(in_dim=d_in, out_dim=3, width=cfg.width, depth=cfg.depth,
                                        activation=cfg.activation))
         # softplus^-1(init_intensity): start with a plausible light level
@@ -120,8 +87,7 @@ class PhotonField(nn.Module):
         self.intensity_bias.fill_(value + math.log(-math.expm1(-value)))
 
     def forward(self, x: Tensor, n: Tensor, feature: Tensor) -> tuple[Tensor, Tensor]:
-        parts = ([positional_encoding(x, self.cfg.n_freqs_x)] + ([n] if self.cfg.use_normal else [])
-                 + ([feature] if self.cfg.use_feature else []))
+        parts = [positional_encoding(x, self.cfg.n_freqs_x), n] + ([feature] if self.cfg.use_feature else [])
         raw = self.mlp(torch.cat(parts, dim=-1))
         rho = math.pi * torch.sigmoid(raw[..., 0])
         phi = math.pi * torch.tanh(raw[..., 1])
