@@ -100,10 +100,10 @@ def cost_rows(results_dir: Path) -> dict[str, dict]:
 
 def format_cost_table(costs: dict[str, dict]) -> str:
     """Markdown: dB below the oracle with only that channel (or set) from the run."""
-    cols = COST_COLUMNS
-    lines = ["| scene | " + " | ".join(cols) + " |", "|" + "---|" * (len(cols) + 1)]
+    lines = ["| scene | " + " | ".join(COST_COLUMNS) + " |", "|" + "---|" * (len(COST_COLUMNS) + 1)]
     for scene, row in costs.items():
-        lines.append(f"| {scene} | " + " | ".join("n/a" if row.get(k) is None else f"{row[k]:.2f}" for k in cols) + " |")
+        lines.append(f"| {scene} | " + " | ".join("n/a" if row.get(k) is None else f"{row[k]:.2f}"
+                                                   for k in COST_COLUMNS) + " |")
     return "\n".join(lines)
 
 
