@@ -54,7 +54,7 @@ def test_its_fit_is_the_surface_rays_l1_and_trains_that_network_alone():
     fg = out.weight_sum.detach() > 0.5
     assert 0 < int(fg.sum()) < len(fg)         # the test means something: some rays miss
     err = (linear_to_srgb(out.evidence_colour) - linear_to_srgb(rays.rgb)).abs().mean(-1)
-    assert float(losses["loss_evidence_radiance"].detach()) == pytest.approx(float(err[fg].mean()), rel=1e-5)
+    assert float(losses["loss_evidence_radiance"].detach()) == pytest.approx(float(err[fg].mean().detach()), rel=1e-5)
     grads = torch.autograd.grad(losses["loss_evidence_radiance"], list(model.parameters()), allow_unused=True)
     reached = {name.split(".")[0] for (name, _), gr in zip(model.named_parameters(), grads)
                if gr is not None and gr.abs().sum() > 0}
