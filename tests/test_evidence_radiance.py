@@ -109,7 +109,7 @@ def test_a_fast_fit_trains_it(tmp_path):
         rows = []
 
         def after_step(self, run, step, out, losses):
-            self.rows.append(float(losses["loss_evidence_radiance"]))
+            self.rows.append(float(losses["loss_evidence_radiance"].detach()))
 
     fit(load_scene(tmp_path / "s" / "dtu"), tmp_path / "run", cfg, device="cpu", hooks=[Seen()])
     assert len(Seen.rows) == 30 and all(math.isfinite(r) for r in Seen.rows)
