@@ -18,8 +18,6 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
               share: the metal evidence recorded near x*, train/metal_record.py; off in paper)
     L_evid  = w_material_evidence * mean_p q_m |m(x*) - m*|
               (targets from the radiance field across views, render/material_evidence.py; off in paper)
-    L_e     = w_r * mean_surf | srgb(R_e(x*)) - srgb(L_gt) |   (the evidence's own radiance network, inputs
-              detached, fields/evidence_radiance.py; only with model.evidence_radiance)
     L_bg    = w_r * mean_{mask = 0} | srgb(L_r) - srgb(L_gt) |   (masks and a background model)
     L_points = w_surface_points * mean_p |f(p)|   (captures without masks, train/surface_points.py)
 
@@ -360,11 +358,6 @@ def loss_material_evidence(b: LossBatch) -> Tensor:
     return (ev.metallic_confidence * (s.metallic[eb.rays] - ev.metallic).abs()).mean()
 
 
-def loss_evidence_radiance(b: LossBatch) -> Tensor:
-    err = (linear_to_srgb(b.out.evidence_colour) - b.gt).abs().mean(-1)
-    return mean_where(err, b.on_surf)
-
-
 def loss_surface_points(b: LossBatch) -> Tensor:
     return b.surface_points()
 
@@ -401,8 +394,6 @@ LOSS_TERMS: tuple[LossTerm, ...] = (
     LossTerm("loss_metallic_unseen", "w_metallic_unseen", loss_metallic_unseen, lobe_split=True),
     LossTerm("loss_material_evidence", "w_material_evidence", loss_material_evidence,
              present=lambda b: b.out.material_evidence is not None),   # only the training step gathers it
-    LossTerm("loss_evidence_radiance", "w_r", loss_evidence_radiance,
-             present=lambda b: b.out.evidence_colour is not None),   # a model with an evidence radiance
     LossTerm("loss_surface_points", "w_surface_points", loss_surface_points,
              present=lambda b: b.surface_points is not None),
 )

@@ -8,7 +8,6 @@ import torch
 from torch import Tensor, nn
 
 from nepf_core.fields.background import BackgroundConfig, BackgroundVolume
-from nepf_core.fields.evidence_radiance import EvidenceRadiance
 from nepf_core.fields.heads import Deviation, HeadConfig, MaterialField, PhotonField, RadianceField
 from nepf_core.fields.sdf_grid import GridSDF, GridSDFConfig
 from nepf_core.fields.sdf_mlp import MLPSDF, MLPSDFConfig
@@ -30,10 +29,6 @@ class ModelConfig:
     """Photon network (paper: 8x256 ReLU)."""
     material: HeadConfig = field(default_factory=lambda: HeadConfig(activation="siren"))
     """Material network (paper: 8x256 SIREN)."""
-    evidence_radiance: bool = False
-    """A second radiance network of :attr:`radiance`'s shape reading the reflected direction,
-    trained at the surface points and read only by the metal evidence
-    (:mod:`nepf_core.fields.evidence_radiance`); False: the evidence reads :attr:`radiance`."""
     init_variance: float = 0.3
     """NeuS deviation init: inv_s = exp(10 * 0.3) = 20."""
     background: bool = False
@@ -71,7 +66,6 @@ class NePFModel(nn.Module):
         self.radiance = RadianceField(cfg.radiance, F)
         self.photon = PhotonField(cfg.photon, F)
         self.material = MaterialField(cfg.material, F)
-        self.evidence_radiance = EvidenceRadiance(cfg.radiance, F) if cfg.evidence_radiance else None
         self.deviation = Deviation(cfg.init_variance)
         self.background = BackgroundVolume(cfg.background_volume) if cfg.background else None
         self.occupancy = None

@@ -243,9 +243,7 @@ def views_of_points(model, x: Tensor, n: Tensor, cams: Tensor, k: int,
     face it, and the unit directions toward them; ``valid`` leaves out the draws that do not face
     it or do not see it (the occlusion test runs on the drawn cameras only, so a point with hidden
     cameras gets fewer than ``k``). Whether the point lies inside the camera's image is not
-    checked: on the suite's orbits every facing camera frames the object. The colours are the
-    model's ``evidence_radiance`` where it has one (:mod:`nepf_core.fields.evidence_radiance`),
-    else its radiance network's."""
+    checked: on the suite's orbits every facing camera frames the object."""
     P = x.shape[0]
     to_cam = cams[None, :, :] - x[:, None, :]
     to_cam = to_cam / to_cam.norm(dim=-1, keepdim=True).clamp_min(1e-8)                # [P, C, 3]
@@ -259,8 +257,7 @@ def views_of_points(model, x: Tensor, n: Tensor, cams: Tensor, k: int,
     valid = (top >= 0.0) & seen_from(model.sdf.sdf, xs, v.reshape(-1, 3)).reshape(top.shape)
     _, feat = model.sdf(x)
     kk = v.shape[1]
-    radiance = model.evidence_radiance if getattr(model, "evidence_radiance", None) is not None else model.radiance
-    c = radiance(xs, -v.reshape(-1, 3), n[:, None, :].expand_as(v).reshape(-1, 3),
+    c = model.radiance(xs, -v.reshape(-1, 3), n[:, None, :].expand_as(v).reshape(-1, 3),
                        feat[:, None, :].expand(P, kk, feat.shape[-1]).reshape(P * kk, -1)).float()
     return c.reshape(P, kk, 3), v, valid
 

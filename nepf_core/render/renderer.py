@@ -142,10 +142,6 @@ class RenderOutput:
     """``[R]`` in ``[0, 1)``: how firmly the evidence recorded near each ray's surface point says
     metal (:class:`nepf_core.train.metal_record.MetalRecord`), which lifts the unseen-lobe prior
     there; set by the training step beside ``material_evidence``, else None (the prior in full)."""
-    evidence_colour: Tensor | None = None
-    """``[R, 3]`` (linear): the evidence's radiance network at each ray's surface point toward the
-    ray's camera (:mod:`nepf_core.fields.evidence_radiance`), for its fit ``L_e``; set by the
-    training step when the model has one, else None."""
     colour_logits: Tensor | None = None
     """``[K, 3]`` (training renders): the raw outputs before the sigmoid of every colour this render
     evaluated, the radiance network's at the shaded samples and the background's at its samples,

@@ -249,8 +249,6 @@ class TrainingRun:
             background_rays = (c_bg, left_out)
             out.colour_logits = torch.cat([out.colour_logits, z_bg])
         self._n_background_rays = 0 if background_rays is None else len(left_out)
-        if model.evidence_radiance is not None:
-            out.evidence_colour = self._evidence_colour(out.surface)
         if loss_cfg.w_material_evidence > 0:
             out.material_evidence = self._material_evidence(rays, out, rs.specular)
             if self.metal_record is not None:
@@ -288,13 +286,6 @@ class TrainingRun:
             keep = keep & ~rays.unlit
         s = out.surface
         return gather_evidence(self.model, s.x, s.normal, s.light_dir, keep, self.camera_centres, self.gen)
-
-    def _evidence_colour(self, s) -> torch.Tensor:
-        """``[R, 3]``: the evidence's radiance network at the surface points ``s.x`` toward the
-        rays' cameras (its input is detached: it learns from ``L_e`` alone)."""
-        with torch.no_grad():
-            _, feat = self.model.sdf(s.x.detach())
-        return self.model.evidence_radiance(s.x, s.direction, s.normal, feat).float()
 
     def _after_step(self, rays, out, losses) -> None:
         """The rules, the weight average's restart, records, sync/held-out evaluations, checkpoints."""
