@@ -113,29 +113,6 @@ def test_a_half_metal_half_dielectric_sphere_splits(tilt_deg):
                                                                          pytest.approx(0.45))
 
 
-def test_an_untinted_metal_is_not_a_black_dielectric(monkeypatch):
-    """A white metal's lobe is a black dielectric's under a light 25x brighter (F0 = 0.04): with
-    the dielectric's albedo free down to 0 the two kinds nearly tie; with the floor the dielectric
-    needs a diffuse floor the views do not show, and the metal is called with confidence. A
-    dielectric just above the floor (0.012, sRGB 30) is still called dielectric."""
-    g = torch.Generator().manual_seed(3)
-    n = _sphere_points(300, g)
-    l = _unit(torch.tensor([0.2, 0.1, 1.0])).expand_as(n)
-    v = _hemisphere_dirs(n, 8, g)
-    valid = (v * n[:, None]).sum(-1) > me.MIN_FACING_COS
-    white_metal = _colours(n, l, v, (0.92, 0.92, 0.9), 0.3, 1.0)
-    dark_dielectric = _colours(n, l, v, (0.012, 0.012, 0.012), 0.3, 0.0)
-    sure = lambda ev: float(((ev.metallic > 0.5) & (ev.metallic_confidence > 0.1)).float().mean())
-    floored = me.material_evidence(white_metal, n, l, v, valid)
-    assert me.DIELECTRIC_ALBEDO_MIN <= 0.012
-    assert float(me.material_evidence(dark_dielectric, n, l, v, valid).metallic.mean()) < 0.1
-    monkeypatch.setattr(me, "DIELECTRIC_ALBEDO_MIN", 0.0)
-    free = me.material_evidence(white_metal, n, l, v, valid)
-    assert float(free.metallic_confidence.median()) < 0.2          # the tie the floor breaks
-    assert float(floored.metallic_confidence.median()) > 2.0 * float(free.metallic_confidence.median())
-    assert sure(floored) > 0.6 and sure(floored) > sure(free) + 0.2
-
-
 def test_without_the_light_search_a_tilted_light_costs_metals():
     """The reason for :func:`light_candidates`: at the tilted light alone fewer metals are found."""
     g = torch.Generator().manual_seed(3)

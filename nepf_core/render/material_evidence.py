@@ -6,16 +6,14 @@ gives the point's colour toward each training camera that faces and sees it:
 grad) the glTF BSDF (:mod:`nepf_core.bsdf`) makes that colour *affine in the albedo* for either
 kind of material, per channel ``c``:
 
-    c_kc = alpha_c A_k + beta B_k,        alpha_c = a_c beta,  beta = E (n . l),  a_lo <= a_c <= 1
+    c_kc = alpha_c A_k + beta B_k,        alpha_c = a_c beta,  beta = E (n . l),  0 <= a_c <= 1
     dielectric (m = 0):  A_k = (1 - F_k) / pi,        B_k = F_k D_k V_k,   F_k = 0.04 + 0.96 S_k
     metal      (m = 1):  A_k = (1 - S_k) D_k V_k,     B_k = S_k D_k V_k
     S_k = (1 - h_k . v_k)^5,  D, V: GGX and Smith at roughness r (``ggx_alpha_smooth``)
 
-``a_lo`` is 0 for a metal and :data:`DIELECTRIC_ALBEDO_MIN` for a dielectric: no real dielectric
-is black, and a black one under a brighter light would mimic an untinted metal. ``E`` (the
-light's intensity) is unknown and enters only through ``beta``. For each hypothesis
+``E`` (the light's intensity) is unknown and enters only through ``beta``. For each hypothesis
 ``h = (m, r)`` on :data:`ROUGHNESS_GRID` x {0, 1}, :func:`fit_hypotheses` fits ``(a, beta)`` to
-the views by least squares (alternating exact minimisation: ``a`` clamped to [a_lo, 1] per channel
+the views by least squares (alternating exact minimisation: ``a`` clamped to [0, 1] per channel
 for fixed ``beta``, then ``beta >= 0`` for fixed ``a``) and scores it by its relative residual
 
     e_h = (sum_kc (fit_kc - c_kc)^2 + eps sum_kc c_kc^2) / sum_kc c_kc^2      (eps = RESIDUAL_FLOOR)
@@ -75,13 +73,6 @@ LIGHT_TILTS_DEG = (15.0, 30.0)
 """The light directions tried besides the given one: tilted by these angles ..."""
 LIGHT_AZIMUTHS = 6
 """... at this many azimuths about it (so ``1 + 2 x 6 = 13`` directions)."""
-DIELECTRIC_ALBEDO_MIN = 0.01
-"""``a_min``: the darkest albedo a dielectric hypothesis may take (linear; sRGB 25). PBR material
-guides put the darkest real dielectrics (charcoal, black plastic, fresh asphalt) at linear
-0.013-0.04 (sRGB 30-55). Without a floor, a dielectric of albedo 0 under a light ~25x brighter
-(``F0 = 0.04``) shows the same white lobe as an untinted metal, so on a white or grey metal the
-two kinds tie (confidence ~0.1) and the unseen-lobe prior wins; with it, the dielectric must
-show a diffuse floor the metal's views do not have."""
 
 
 @dataclass
@@ -128,7 +119,7 @@ def fit_hypotheses(c: Tensor, A: Tensor, B: Tensor, valid: Tensor) -> Tensor:
         beta    = (sum_c S_Bc - S_AB sum_c S_Ac / S_AA) / (3 (S_BB - S_AB^2 / S_AA))
         alpha_c = (S_Ac - beta S_AB) / S_AA
 
-    exact whenever it is feasible (``a_lo <= a_c = alpha_c / beta <= 1``); then
+    exact whenever it is feasible (``0 <= a_c = alpha_c / beta <= 1``); then
     :data:`FIT_ROUNDS` rounds of exact alternating minimisation under the bounds (``a`` clamped
     per channel for fixed ``beta``, then ``beta >= 0`` for fixed ``a``), each never raising the
     residual. Where the bounds bind this can stop short of the constrained optimum (a review
@@ -146,9 +137,6 @@ def fit_hypotheses(c: Tensor, A: Tensor, B: Tensor, valid: Tensor) -> Tensor:
     det = 3.0 * (s_bb - s_ab * s_ab / s_aa_safe)
     beta = ((s_bc.sum(-1) - s_ab * s_ac.sum(-1) / s_aa_safe) / det.clamp_min(1e-12)).clamp_min(1e-12)
     a = ((s_ac - beta[..., None] * s_ab[..., None]) / (beta * s_aa_safe)[..., None]).clamp(0.0, 1.0)
-    lo = torch.zeros(A.shape[1], 1, dtype=A.dtype, device=A.device)
-    lo[:len(ROUGHNESS_GRID)] = DIELECTRIC_ALBEDO_MIN                                      # [H, 1]
-    a = torch.maximum(a, lo)
     a = torch.where((det > 1e-12)[..., None], a, torch.full_like(a, 0.5))
 
     def quadratic_and_linear(a):
@@ -160,7 +148,7 @@ def fit_hypotheses(c: Tensor, A: Tensor, B: Tensor, valid: Tensor) -> Tensor:
     for _ in range(FIT_ROUNDS):
         den = (beta * s_aa)[..., None]
         a = torch.where(den > 1e-12, (s_ac - beta[..., None] * s_ab[..., None]) / den.clamp_min(1e-12), a)
-        a = torch.maximum(a.clamp(0.0, 1.0), lo)
+        a = a.clamp(0.0, 1.0)
         q, lin = quadratic_and_linear(a)
         beta = (lin / q.clamp_min(1e-12)).clamp_min(0.0)
     sse = (beta * beta * q - 2.0 * beta * lin + s_cc).clamp_min(0.0)
