@@ -36,9 +36,6 @@ class HeadConfig:
     """Read the SDF feature vector (paper: yes). The fast preset's photon network sets this
     False so the light field is a smooth function of (x, n) and cannot copy surface texture
     into the intensity (texture then has to go to the albedo)."""
-    use_normal: bool = True
-    """Read the surface normal (paper: yes). Material network only: without it the albedo
-    cannot be a function of the orientation, so it cannot absorb ``n . l`` shading."""
 
 
 class RadianceField(nn.Module):
@@ -105,7 +102,7 @@ class MaterialField(nn.Module):
     def __init__(self, cfg: HeadConfig, feature_dim: int) -> None:
         super().__init__()
         self.cfg = cfg
-        d_in = encoding_dim(3, cfg.n_freqs_x) + (3 if cfg.use_normal else 0) + feature_dim
+        d_in = encoding_dim(3, cfg.n_freqs_x) + 3 + feature_dim
         self.mlp = build_mlp(MLPConfig(in_dim=d_in, out_dim=5, width=cfg.width, depth=cfg.depth,
                                        activation=cfg.activation))
         with torch.no_grad():  # start dielectric: metallic = sigmoid(-3) ~ 0.05
@@ -119,8 +116,7 @@ class MaterialField(nn.Module):
     def forward(self, x: Tensor, n: Tensor, feature: Tensor, *, with_logits: bool = False):
         """``(albedo [N,3], roughness [N], metallic [N])``; with ``with_logits`` also the raw outputs
         ``z [N, 5]`` before the sigmoid (for :attr:`nepf_core.losses.LossConfig.w_material_range`)."""
-        parts = [positional_encoding(x, self.cfg.n_freqs_x)] + ([n] if self.cfg.use_normal else []) + [feature]
-        z = self.mlp(torch.cat(parts, dim=-1))
+        z = self.mlp(torch.cat([positional_encoding(x, self.cfg.n_freqs_x), n, feature], dim=-1))
         out = torch.sigmoid(z)
         if with_logits:
             return out[..., :3], out[..., 3], out[..., 4], z
