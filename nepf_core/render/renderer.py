@@ -84,10 +84,6 @@ class RenderConfig:
     """Training only, > 0: also query the material network at ``x* + N(0, sigma^2 I)`` next
     to each surface point (:attr:`Surface.jitter`) for the smoothness priors
     (``LossConfig.w_albedo_smooth``, ``w_brdf_smooth``: a non-zero weight needs it). Normalised-frame units."""
-    pbr_normals_detached: bool = False
-    """The PBR colour (photon and material heads, BSDF) reads the normals detached, so L_vol and
-    L_surf cannot bend the surface to hide what the material and light cannot explain; the
-    geometry then follows L_r (NeuS), the eikonal and mask terms."""
     surface_refine: bool = False
     """``sample`` alpha mode only: shade L_surf (and place :class:`Surface`) at the SDF zero crossing
     inside the max-weight section (:func:`nepf_core.render.neus.surface_crossing_t`), with its
@@ -211,8 +207,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     xj = fj = None
     if cfg.surface_refine and cfg.alpha_mode == "sample":
         xr, nr, fr, xj, fj = refine_surface(model, o, d, sw.z, sw.sdf, sw.idx_max, jitter_sigma=jitter_sigma)
-        p = shade_points(model, cfg, shading, xr, d, nr.detach() if cfg.pbr_normals_detached else nr, fr,
-                         unlit_ray, logits=train)
+        p = shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray, logits=train)
         rgb_surf = p.pbr
         surface = Surface(x=xr, normal=nr, direction=d, light_dir=p.light_dir, intensity=p.intensity,
                           albedo=p.albedo, roughness=p.roughness, metallic=p.metallic, material_logits=p.logits)

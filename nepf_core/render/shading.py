@@ -112,7 +112,6 @@ def shade_samples(model, cfg, shading: Shading, sw, normals: Tensor, sel_idx: Te
     with _autocast(cfg, xs.device):
         rad, rad_z = model.radiance(xs, vs, gs, fs, with_logits=True)
     unlit = unlit_ray[sel_idx // S] if unlit_ray is not None else None
-    p = shade_points(model, cfg, shading, xs, vs, ns.detach() if cfg.pbr_normals_detached else ns, fs, unlit,
-                     logits=train)
+    p = shade_points(model, cfg, shading, xs, vs, ns, fs, unlit, logits=train)
     return ShadedSamples(p.pbr, p.light_dir, p.intensity, p.albedo, p.roughness, p.metallic, p.logits,
                          index=sel_idx, radiance=rad.float(), radiance_logits=rad_z.float() if train else None)
