@@ -140,13 +140,10 @@ def main(argv: list[str] | None = None) -> int:
     if a.table is None:
         if a.out is None:
             ap.error("--out DIR is needed to run the suite")
-        seeds = [int(s) for s in a.seeds.split(",") if s.strip()]
         from bench.run import main as run_main
         args = ["--scenes", a.scenes, "--scenes-root", a.scenes_root, "--configs", "fast", "--budget", str(a.budget),
                 "--eval-every", str(a.budget), "--threads", str(a.threads), "--no-fit-chamfer",
-                "--repeats", str(len(seeds)), "--out", str(a.out)]
-        if len(seeds) == 1:
-            args += ["--override", f"train.seed={seeds[0]}"]
+                "--seeds", a.seeds, "--out", str(a.out)]
         for o in a.override:
             args += ["--override", o]
         if a.skip_done:

@@ -165,6 +165,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="per-config evaluation period, e.g. paper=180 (a paper evaluation costs minutes)")
     p.add_argument("--eval-stride", type=int, default=1, help="render held-out views every N-th pixel")
     p.add_argument("--repeats", type=int, default=1, help="runs per configuration; tables report medians; with N > 1 repeat r of every variant uses train.seed = r (matched pairs) unless --override sets it")
+    p.add_argument("--seeds", default=None, help="comma-separated train seeds, one run of every variant per seed (matched pairs); replaces --repeats and an --override of train.seed")
     p.add_argument("--threads", type=int, default=None, help="torch threads in each run (and OMP_NUM_THREADS)")
     p.add_argument("--chamfer-resolution", type=int, default=256,
                    help="marching-cubes resolution of the final Chamfer (0: skip; default 256)")
@@ -184,6 +185,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="kill a run after factor * budget + 900 s of process time (hang guard)")
     p.add_argument("--dry-run", action="store_true", help="print the runs and exit")
     return p
+
+
+def run_seeds(text: str | None, repeats: int, overrides: dict) -> list[int] | None:
+    """The training seeds of ``--seeds "a,b,..."`` (None without it), one run of every variant
+    each. SystemExit where they are not distinct integers, or where ``--repeats`` or an
+    ``--override train.seed`` asks for seeds too: two sources of seeds would silently disagree."""
+    if text is None:
+        return None
+    try:
+        seeds = [int(s) for s in text.split(",") if s.strip()]
+    except ValueError:
+        raise SystemExit(f"--seeds takes comma-separated integers, got {text!r}") from None
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise SystemExit(f"--seeds needs distinct seeds, got {text!r}")
+    if repeats > 1 or "train.seed" in overrides:
+        raise SystemExit("give the seeds once: --seeds, or --repeats / --override train.seed=N, not both")
+    return seeds
 
 
 def plan_runs(args) -> list[dict]:
@@ -223,15 +241,18 @@ def plan_runs(args) -> list[dict]:
                         "mesh_resolution": args.mesh_resolution})
     if not targets:
         raise SystemExit("nothing to run: give --scenes and/or --dataset")
+    seeds = run_seeds(args.seeds, args.repeats, extra)
     runs = []
     for t in targets:
         for c in configs:
             for v in variants:
-                for r in range(max(1, args.repeats)):
+                for r in range(max(1, args.repeats) if seeds is None else len(seeds)):
                     ov = {"train.eval_every_s": float(eval_every_for.get(c, args.eval_every)), "train.eval_stride": int(args.eval_stride)}
                     ov.update(extra)
                     ov.update(VARIANTS[v])
-                    if args.repeats > 1 and "train.seed" not in extra:
+                    if seeds is not None:
+                        ov["train.seed"] = seeds[r]
+                    elif args.repeats > 1 and "train.seed" not in extra:
                         ov["train.seed"] = r  # repeat r of every variant shares seed r (matched pairs)
                     rid = f"{t['scene']}__{c}__{v}__r{r}"
                     runs.append({**t, "preset": c, "variant": v, "repeat": r, "id": rid,

@@ -228,3 +228,38 @@ def test_level_savings_at_every_shared_whole_db_level_up_to_the_lower_final():
     # swapped roles: the same levels, the opposite sign of the time difference
     assert [x["saved_pct"] for x in level_savings(b, a)] == pytest.approx([20.0, 100 / 3, 200 / 7])
     assert level_savings(a, _rec("s", "fast", "all_on", [(30, 30.0)])) == []
+
+
+def _plan(tmp_path, *extra):
+    from bench.run import build_parser, plan_runs
+    for sub in ("input/dtu", "gt/dtu_test"):
+        (tmp_path / "s" / sub).mkdir(parents=True, exist_ok=True)
+    return plan_runs(build_parser().parse_args(["--scenes", "s", "--scenes-root", str(tmp_path), "--configs", "fast",
+                                                "--out", str(tmp_path / "out"), *extra]))
+
+
+def test_seeds_are_the_ones_asked_for(tmp_path):
+    """``--seeds 2,3`` trains seeds 2 and 3 (not the repeat indices 0 and 1); ``--repeats N`` keeps
+    seeds 0..N-1; a second source of seeds is refused instead of silently winning."""
+    assert [r["overrides"]["train.seed"] for r in _plan(tmp_path, "--seeds", "2,3")] == [2, 3]
+    assert [r["overrides"]["train.seed"] for r in _plan(tmp_path, "--seeds", "5")] == [5]
+    assert [r["overrides"]["train.seed"] for r in _plan(tmp_path, "--repeats", "2")] == [0, 1]
+    for bad in (["--seeds", "2,2"], ["--seeds", "a"], ["--seeds", "2,3", "--repeats", "2"],
+                ["--seeds", "2", "--override", "train.seed=4"]):
+        with pytest.raises(SystemExit):
+            _plan(tmp_path, *bad)
+
+
+def test_the_materials_suite_passes_its_seeds_through(tmp_path, monkeypatch):
+    """``python -m bench materials --seeds 2,3`` hands the runner exactly those seeds."""
+    import bench.run
+    from bench.materials import main
+    seen = {}
+
+    def fake_run(argv):
+        seen["argv"] = argv
+        return 1   # stop before the table
+    monkeypatch.setattr(bench.run, "main", fake_run)
+    assert main(["--seeds", "2,3", "--out", str(tmp_path / "o"), "--scenes", "s", "--scenes-root", str(tmp_path)]) == 1
+    argv = seen["argv"]
+    assert argv[argv.index("--seeds") + 1] == "2,3" and "--repeats" not in argv
