@@ -16,7 +16,8 @@ For every (scene, config, variant, repeat), one at a time, a **subprocess** runs
 The parent measures each child's peak RSS and CPU time with ``os.wait4`` (exact per child),
 and the child also reports its own peak RSS right after training (before the final Chamfer
 mesh). After every run the parent rewrites ``results.json``, ``table.md`` and the plots, so an
-interrupted benchmark keeps what it finished (``--skip-done`` reuses finished runs).
+interrupted benchmark keeps what it finished (``--skip-done`` reuses finished runs whose overrides,
+seed included, are the ones asked for).
 """
 
 from __future__ import annotations
@@ -389,7 +390,8 @@ def main(argv: list[str] | None = None) -> int:
         prev = {r["id"]: r for r in json.loads((out / "results.json").read_text()).get("runs", [])}
     for i, spec in enumerate(runs, 1):
         done = out / "runs" / spec["id"] / "bench_child.json"
-        if args.skip_done and spec["id"] in prev and done.exists():
+        if args.skip_done and spec["id"] in prev and done.exists() \
+                and prev[spec["id"]].get("overrides") == spec["overrides"]:   # same run, not just the same id
             print(f"[{i}/{len(runs)}] {spec['id']}: done before, reused")
             results["runs"].append(prev[spec["id"]])
             continue

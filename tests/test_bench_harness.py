@@ -263,3 +263,29 @@ def test_the_materials_suite_passes_its_seeds_through(tmp_path, monkeypatch):
     assert main(["--seeds", "2,3", "--out", str(tmp_path / "o"), "--scenes", "s", "--scenes-root", str(tmp_path)]) == 1
     argv = seen["argv"]
     assert argv[argv.index("--seeds") + 1] == "2,3" and "--repeats" not in argv
+
+
+def test_skip_done_reuses_a_run_only_with_the_same_overrides(tmp_path, monkeypatch):
+    """``--skip-done`` reuses a finished run by its id only when its overrides (the seed among them)
+    are the ones asked for: ``--seeds 1`` after ``--seeds 0`` has the same id (``r0``) and must train."""
+    import bench.report
+    import bench.run
+    trained = []
+
+    def fake_run_one(spec, out, timeout_s, log=print):
+        trained.append(spec["overrides"]["train.seed"])
+        child = out / "runs" / spec["id"] / "bench_child.json"
+        child.parent.mkdir(parents=True, exist_ok=True)
+        child.write_text("{}")
+        return {"id": spec["id"], "status": "succeeded", "overrides": spec["overrides"], "process_wall_s": 1.0,
+                "peak_rss_mb_process": 1.0}
+    monkeypatch.setattr(bench.run, "run_one", fake_run_one)
+    monkeypatch.setattr(bench.report, "final_test", lambda rec: {})
+    monkeypatch.setattr(bench.report, "write_all", lambda res, out: (out / "results.json").write_text(json.dumps(res)))
+    for sub in ("input/dtu", "gt/dtu_test"):
+        (tmp_path / "s" / sub).mkdir(parents=True, exist_ok=True)
+    base = ["--scenes", "s", "--scenes-root", str(tmp_path), "--configs", "fast", "--out", str(tmp_path / "o"),
+            "--skip-done"]
+    for seed in ("0", "0", "1", "1"):
+        assert bench.run.main(base + ["--seeds", seed]) == 0
+    assert trained == [0, 1]
