@@ -188,12 +188,15 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def run_seeds(text: str | None, repeats: int, overrides: dict) -> list[int] | None:
-    """The training seeds of ``--seeds "a,b,..."`` (None without it), one run of every variant
-    each. SystemExit where they are not distinct integers, or where ``--repeats`` or an
-    ``--override train.seed`` asks for seeds too: two sources of seeds would silently disagree."""
+def run_seeds(text: str | None, repeats: int, overrides: dict) -> list[int | None]:
+    """The training seed of each repeat of every variant (matched pairs): those of ``--seeds
+    "a,b,..."``; without it ``0..N-1`` for ``--repeats N > 1`` (unless an ``--override train.seed``
+    sets one for all), else ``[None]`` (the config's seed). SystemExit where the seeds are not
+    distinct integers, or where ``--repeats`` or an ``--override train.seed`` asks for seeds too:
+    two sources of seeds would silently disagree."""
     if text is None:
-        return None
+        n = max(1, repeats)
+        return list(range(n)) if n > 1 and "train.seed" not in overrides else [None] * n
     try:
         seeds = [int(s) for s in text.split(",") if s.strip()]
     except ValueError:
@@ -247,14 +250,12 @@ def plan_runs(args) -> list[dict]:
     for t in targets:
         for c in configs:
             for v in variants:
-                for r in range(max(1, args.repeats) if seeds is None else len(seeds)):
+                for r, seed in enumerate(seeds):
                     ov = {"train.eval_every_s": float(eval_every_for.get(c, args.eval_every)), "train.eval_stride": int(args.eval_stride)}
                     ov.update(extra)
                     ov.update(VARIANTS[v])
-                    if seeds is not None:
-                        ov["train.seed"] = seeds[r]
-                    elif args.repeats > 1 and "train.seed" not in extra:
-                        ov["train.seed"] = r  # repeat r of every variant shares seed r (matched pairs)
+                    if seed is not None:
+                        ov["train.seed"] = seed
                     rid = f"{t['scene']}__{c}__{v}__r{r}"
                     runs.append({**t, "preset": c, "variant": v, "repeat": r, "id": rid,
                                  "budget_s": float(budget_for.get(c, args.budget)), "overrides": ov,

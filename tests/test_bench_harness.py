@@ -230,10 +230,16 @@ def test_level_savings_at_every_shared_whole_db_level_up_to_the_lower_final():
     assert level_savings(a, _rec("s", "fast", "all_on", [(30, 30.0)])) == []
 
 
-def _plan(tmp_path, *extra):
-    from bench.run import build_parser, plan_runs
+def _scene_root(tmp_path):
+    """A scenes root holding one scene ``s`` in the layout the runner checks (no data: planning only)."""
     for sub in ("input/dtu", "gt/dtu_test"):
         (tmp_path / "s" / sub).mkdir(parents=True, exist_ok=True)
+    return tmp_path
+
+
+def _plan(tmp_path, *extra):
+    from bench.run import build_parser, plan_runs
+    _scene_root(tmp_path)
     return plan_runs(build_parser().parse_args(["--scenes", "s", "--scenes-root", str(tmp_path), "--configs", "fast",
                                                 "--out", str(tmp_path / "out"), *extra]))
 
@@ -282,9 +288,7 @@ def test_skip_done_reuses_a_run_only_with_the_same_overrides(tmp_path, monkeypat
     monkeypatch.setattr(bench.run, "run_one", fake_run_one)
     monkeypatch.setattr(bench.report, "final_test", lambda rec: {})
     monkeypatch.setattr(bench.report, "write_all", lambda res, out: (out / "results.json").write_text(json.dumps(res)))
-    for sub in ("input/dtu", "gt/dtu_test"):
-        (tmp_path / "s" / sub).mkdir(parents=True, exist_ok=True)
-    base = ["--scenes", "s", "--scenes-root", str(tmp_path), "--configs", "fast", "--out", str(tmp_path / "o"),
+    base = ["--scenes", "s", "--scenes-root", str(_scene_root(tmp_path)), "--configs", "fast", "--out", str(tmp_path / "o"),
             "--skip-done"]
     for seed in ("0", "0", "1", "1"):
         assert bench.run.main(base + ["--seeds", seed]) == 0
