@@ -189,8 +189,8 @@ def fake_pipeline(request: JobRequest) -> dict:
         if step % 5 == 0:
             mf.write(json.dumps({"step": step, "wall_s": time.time() - t0, "kind": "sync", "psnr_r": 20 + step / 10,
                                  "psnr_surf": 19 + step / 10, "psnr_vol": 18 + step / 10}) + "\n")
+            mf.flush()   # the records reach the file before the checkpoint names their step, as in the core
             _write_atomic(ck, json.dumps({"step": step}))
-            mf.flush()
             if callbacks is not None:   # as the core does: the worker keeps it (object store)
                 callbacks.checkpoint(step, str(ck))
         mf.flush()

@@ -246,7 +246,9 @@ def test_a_second_worker_on_the_data_dir_waits_for_the_lock_then_takes_over(proc
     assert second.alive(), second.output()
 
     ids = []
-    for i, iters in enumerate((30, 100)):   # job 2 long enough to be running when serve stops
+    # job 2 runs 20 s: a wide window for the poll below to see it running (a 10 s one was missed
+    # once on a loaded CI machine), and still running when serve stops
+    for i, iters in enumerate((30, 200)):
         r = upload(base, h, dataset_zip_bytes(tmp_path / f"d{i}"), {"preset": "tiny", "iters": iters})
         assert r.status_code == 202, r.text
         ids.append(r.json()["id"])
@@ -260,7 +262,12 @@ def test_a_second_worker_on_the_data_dir_waits_for_the_lock_then_takes_over(proc
             overlaps.append(list(zip(ids, statuses)))
         return statuses[0] == "succeeded" and statuses[1] == "running" \
             and get_job(base, h, ids[1])["progress"]["step"] >= 3
-    wait_for(first_done_second_running, 60, 0.05, what="job 1 done and job 2 running")
+    try:
+        wait_for(first_done_second_running, 60, 0.05, what="job 1 done and job 2 running")
+    except TimeoutError as exc:   # say where the jobs were and what the processes printed
+        rows = [_db_job(data, j) for j in ids]
+        raise AssertionError(f"{exc}\njobs: {rows}\nserve:\n{api.output()[-4000:]}\n"
+                             f"second worker:\n{second.output()[-2000:]}") from None
     assert not overlaps, overlaps                    # never two jobs running at once
     leases = {e["worker"].rsplit(":", 1)[1] for j in ids for e in get_job(base, h, j)["delivery"]["attempt_log"]}
     assert leases == {str(first)}, leases            # only the lock holder claimed anything
