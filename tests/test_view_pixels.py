@@ -109,3 +109,28 @@ def test_the_metal_evidence_reads_the_images_when_given_them():
     want, seen = views.colours(x, cam[None, :])
     assert torch.allclose(c, want.float()) and torch.equal(valid & seen, valid)
     assert math.isclose(float(v.norm(dim=-1).mean()), 1.0, rel_tol=1e-5)
+
+
+def test_the_blur_keeps_a_flat_foreground_flat_and_never_reads_the_background():
+    """Normalised convolution: a constant colour inside the mask stays that colour up to the mask's
+    edge (the background, here bright red, never bleeds in), and a single bright pixel spreads
+    into a Gaussian of the given sigma (its centre keeps 1 / (2 pi sigma^2) of it)."""
+    from nepf_core.render.view_pixels import blur_within_masks
+
+    H, W, sigma = 21, 21, 1.5
+    img = torch.zeros(1, H, W, 3)
+    img[..., 0] = 1.0                                     # red background
+    mask = torch.zeros(1, H, W, dtype=torch.bool)
+    mask[:, :, 10:] = True
+    img[0, :, 10:] = torch.tensor([0.2, 0.4, 0.6])
+    out = blur_within_masks(img, mask, sigma)
+    assert torch.allclose(out[0, :, 10:], torch.tensor([0.2, 0.4, 0.6]).expand(H, W - 10, 3), atol=1e-5)
+
+    dot = torch.zeros(1, H, W, 3)
+    dot[0, 10, 10] = 1.0
+    out = blur_within_masks(dot, None, sigma)
+    g = torch.exp(-0.5 * (torch.arange(-5, 6.0) / sigma) ** 2)
+    g = g / g.sum()
+    assert math.isclose(float(out[0, 10, 10, 0]), float(g[5] ** 2), rel_tol=1e-4)
+    assert math.isclose(float(out[0, 10, 12, 0]), float(g[5] * g[7]), rel_tol=1e-4)
+    assert math.isclose(float(out[0].sum()), 3.0, rel_tol=1e-4)

@@ -122,7 +122,8 @@ class TrainingRun:
         self.ema = ParamEMA(self.model, tc.ema_decay) if tc.ema_decay != 0 else None   # a negative one: ParamEMA says so
         self.sampler = PixelSampler(scene, dev)
         self.camera_centres = torch.as_tensor(np.asarray(scene.c2w)[:, :3, 3], dtype=torch.float32, device=dev)
-        self.evidence_pixels = TrainingViews.of_sampler(self.sampler) if cfg.render.evidence_from_pixels else None
+        self.evidence_pixels = (TrainingViews.of_sampler(self.sampler)
+                                if cfg.render.evidence_from_pixels else None)
         points = data.surface_points   # without masks: where the images saw a surface
         self.surface_points = (SurfacePointPrior(points, dev) if cfg.loss.w_surface_points > 0 and points is not None
                                and len(points) else None)
