@@ -149,29 +149,3 @@ def test_fd_matches_autograd_on_grid_mlp_and_is_trainable():
     g_fd, _ = sdf_gradient_fd(sdf.sdf, x.detach(), 0.5 * g.active_cell_size())
     (g_fd.norm(dim=1) - 1).square().mean().backward()
     assert g.table.grad[g.first_rows[1]:].abs().sum() > 0
-
-
-def test_the_appearance_grid_feeds_the_features_and_never_the_sdf():
-    """``GridSDFConfig.appearance_levels``: its channels are appended to the feature vector, the
-    SDF (``forward``'s and ``sdf``'s alike) gets no gradient from it, and the features do."""
-    from nepf_core.fields.sdf_grid import GridSDF, GridSDFConfig
-
-    torch.manual_seed(0)
-    plain = GridSDF(GridSDFConfig(max_resolution=16, base_resolution=4))
-    f = GridSDF(GridSDFConfig(max_resolution=16, base_resolution=4, appearance_levels=2, appearance_base_resolution=8))
-    assert f.feature_dim == plain.feature_dim + 2 * f.cfg.features_per_level
-    with torch.no_grad():
-        f.appearance.table.normal_()
-    x = torch.rand(64, 3) * 1.6 - 0.8
-    sdf, feat = f(x)
-    assert feat.shape == (64, f.feature_dim)
-    assert torch.allclose(sdf, f.sdf(x))
-    assert torch.allclose(feat[:, -4:], f.appearance(x))
-    for out in (sdf.sum(), f.sdf(x).sum()):
-        f.zero_grad(set_to_none=True)
-        out.backward()
-        g = f.appearance.table.grad
-        assert g is None or float(g.abs().max()) == 0.0
-    f.zero_grad(set_to_none=True)
-    f(x)[1][:, -4:].sum().backward()
-    assert float(f.appearance.table.grad.abs().max()) > 0.0

@@ -45,13 +45,6 @@ class GridSDFConfig:
     """Sphere prior radius."""
     fd_step_cells: float = 0.5
     """Finite-difference step in units of the finest active cell size."""
-    appearance_levels: int = 0
-    """Levels of a second grid read only by the colour networks (0: none): its channels are
-    appended to the feature vector and never reach the SDF, so texture has a place to go other
-    than the surface's shape. Its levels run from ``appearance_base_resolution`` to
-    ``max_resolution`` and are all active from the start."""
-    appearance_base_resolution: int = 64
-    """Coarsest node count per axis of the appearance grid."""
 
 
 class GridSDF(nn.Module):
@@ -73,22 +66,14 @@ class GridSDF(nn.Module):
         with torch.no_grad():
             last.weight[0].zero_()
             last.bias[0] = 0.0
-        self.appearance = None
-        if cfg.appearance_levels > 0:
-            k = cfg.appearance_levels
-            self.appearance = MultiResGrid(GridConfig(n_levels=k, base_resolution=cfg.appearance_base_resolution,
-                                                      max_resolution=cfg.max_resolution,
-                                                      features_per_level=cfg.features_per_level, start_levels=k))
-            self.feature_dim += self.appearance.n_output_dims
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         h = self.head(torch.cat([self.encoding(x), x], dim=-1))
-        feature = h[:, 1:] if self.appearance is None else torch.cat([h[:, 1:], self.appearance(x)], -1)
-        return sphere_sdf(x, self.cfg.init_radius) + h[:, 0], feature
+        return sphere_sdf(x, self.cfg.init_radius) + h[:, 0], h[:, 1:]
 
     def sdf(self, x: Tensor) -> Tensor:
         """SDF only: ``[N, 3] -> [N]``."""
-        return sphere_sdf(x, self.cfg.init_radius) + self.head(torch.cat([self.encoding(x), x], dim=-1))[:, 0]
+        return self.forward(x)[0]
 
     def set_progress(self, progress: float) -> None:
         """Coarse-to-fine: activate grid levels with training progress in [0, 1]."""

@@ -49,7 +49,6 @@ import torch
 from torch import Tensor
 
 from nepf_core import bsdf
-from nepf_core.render.view_pixels import TrainingViews
 
 ROUGHNESS_GRID = (0.1, 0.2, 0.3, 0.45, 0.6, 0.8, 1.0)
 """The roughness values each kind of material is fitted at."""
@@ -237,18 +236,14 @@ def seen_from(sdf_fn, x: Tensor, u: Tensor) -> Tensor:
 
 @torch.no_grad()
 def views_of_points(model, x: Tensor, n: Tensor, cams: Tensor, k: int,
-                    generator: torch.Generator | None,
-                    pixels: TrainingViews | None = None) -> tuple[Tensor, Tensor, Tensor]:
+                    generator: torch.Generator | None) -> tuple[Tensor, Tensor, Tensor]:
     """``(c [P, k, 3], v [P, k, 3], valid [P, k])``: the radiance network's colour of each point
     ``x [P, 3]`` (unit normal ``n``, given as the network's gradient input: ``|grad f| ~ 1`` at the
     surface) seen from up to ``k`` cameras of ``cams [C, 3]`` drawn uniformly among those that
     face it, and the unit directions toward them; ``valid`` leaves out the draws that do not face
     it or do not see it (the occlusion test runs on the drawn cameras only, so a point with hidden
     cameras gets fewer than ``k``). Whether the point lies inside the camera's image is not
-    checked: on the suite's orbits every facing camera frames the object. With ``pixels`` (the
-    training views, in the order of ``cams``) the colours are the images' own at the points'
-    projections (:mod:`nepf_core.render.view_pixels`), and a projection off the image or onto a
-    background pixel is not valid."""
+    checked: on the suite's orbits every facing camera frames the object."""
     P = x.shape[0]
     to_cam = cams[None, :, :] - x[:, None, :]
     to_cam = to_cam / to_cam.norm(dim=-1, keepdim=True).clamp_min(1e-8)                # [P, C, 3]
@@ -260,9 +255,6 @@ def views_of_points(model, x: Tensor, n: Tensor, cams: Tensor, k: int,
     v = torch.gather(to_cam, 1, cam[..., None].expand(-1, -1, 3))
     xs = x[:, None, :].expand_as(v).reshape(-1, 3)
     valid = (top >= 0.0) & seen_from(model.sdf.sdf, xs, v.reshape(-1, 3)).reshape(top.shape)
-    if pixels is not None:
-        c, inside = pixels.colours(x, cam)
-        return c.float(), v, valid & inside
     _, feat = model.sdf(x)
     kk = v.shape[1]
     c = model.radiance(xs, -v.reshape(-1, 3), n[:, None, :].expand_as(v).reshape(-1, 3),
@@ -272,7 +264,7 @@ def views_of_points(model, x: Tensor, n: Tensor, cams: Tensor, k: int,
 
 def gather_evidence(model, x: Tensor, n: Tensor, light_dir: Tensor, keep: Tensor, cams: Tensor,
                     generator: torch.Generator | None = None, *, points: int = POINTS_PER_STEP,
-                    k: int = VIEWS_PER_POINT, pixels: TrainingViews | None = None) -> EvidenceBatch:
+                    k: int = VIEWS_PER_POINT) -> EvidenceBatch:
     """The evidence at up to ``points`` rays drawn among ``keep [R]`` (bool: lit foreground), at
     their surface points ``x, n, light_dir [R, 3]`` (detached here), cameras ``cams [C, 3]``
     (normalised frame). Points seen by fewer than :data:`MIN_VIEWS` cameras are left out."""
@@ -283,7 +275,7 @@ def gather_evidence(model, x: Tensor, n: Tensor, light_dir: Tensor, keep: Tensor
         pick = torch.randperm(rows.numel(), generator=generator)[:points].to(rows.device)
         rows = rows[pick]
     x, n, l = x.detach()[rows], n.detach()[rows], light_dir.detach()[rows]
-    c, v, valid = views_of_points(model, x, n, cams.to(x), k, generator, pixels)
+    c, v, valid = views_of_points(model, x, n, cams.to(x), k, generator)
     enough = valid.sum(-1) >= MIN_VIEWS
     rows, c, v, valid, n, l = rows[enough], c[enough], v[enough], valid[enough], n[enough], l[enough]
     if rows.numel() == 0:

@@ -91,10 +91,6 @@ class RenderConfig:
     sample spacing in front of the surface, at an offset that changes with the sample
     placement. Costs one photon + material evaluation and 5 SDF queries per ray. Off in
     ``paper`` (the paper shades the max-weight point)."""
-    evidence_from_pixels: bool = False
-    """Training only: the metal evidence (``LossConfig.w_material_evidence``) reads each point's
-    colour in the other training views from the images themselves
-    (:mod:`nepf_core.render.view_pixels`) instead of from the radiance network."""
     amp_heads: bool = False
     """bf16 autocast for the radiance / photon / material networks only (CUDA). The SDF, the
     NeuS density and the BSDF stay in fp32: a bf16 SDF near the surface is off by ~1e-3,

@@ -35,7 +35,6 @@ from nepf_core.losses import compute_losses, needs_lobe_split, total_loss
 from nepf_core.model import NePFModel
 from nepf_core.rays import PixelSampler
 from nepf_core.render.material_evidence import gather_evidence
-from nepf_core.render.view_pixels import TrainingViews
 from nepf_core.render.neus import foreground
 from nepf_core.render.renderer import SurfaceRequest, render_background_only, render_rays
 from nepf_core.reframe import reframe_scene
@@ -122,8 +121,6 @@ class TrainingRun:
         self.ema = ParamEMA(self.model, tc.ema_decay) if tc.ema_decay != 0 else None   # a negative one: ParamEMA says so
         self.sampler = PixelSampler(scene, dev)
         self.camera_centres = torch.as_tensor(np.asarray(scene.c2w)[:, :3, 3], dtype=torch.float32, device=dev)
-        self.evidence_pixels = (TrainingViews.of_sampler(self.sampler)
-                                if cfg.render.evidence_from_pixels else None)
         points = data.surface_points   # without masks: where the images saw a surface
         self.surface_points = (SurfacePointPrior(points, dev) if cfg.loss.w_surface_points > 0 and points is not None
                                and len(points) else None)
@@ -288,8 +285,7 @@ class TrainingRun:
         if rays.unlit is not None:
             keep = keep & ~rays.unlit
         s = out.surface
-        return gather_evidence(self.model, s.x, s.normal, s.light_dir, keep, self.camera_centres, self.gen,
-                               pixels=self.evidence_pixels)
+        return gather_evidence(self.model, s.x, s.normal, s.light_dir, keep, self.camera_centres, self.gen)
 
     def _after_step(self, rays, out, losses) -> None:
         """The rules, the weight average's restart, records, sync/held-out evaluations, checkpoints."""
