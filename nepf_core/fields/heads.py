@@ -36,8 +36,6 @@ class HeadConfig:
     """Read the SDF feature vector (paper: yes). The fast preset's photon network sets this
     False so the light field is a smooth function of (x, n) and cannot copy surface texture
     into the intensity (texture then has to go to the albedo)."""
-    roughness_min: float = 0.0
-    """Material network only: roughness ``r = r_min + (1 - r_min) sigmoid(z)`` (screening)."""
 
 
 class RadianceField(nn.Module):
@@ -120,11 +118,9 @@ class MaterialField(nn.Module):
         ``z [N, 5]`` before the sigmoid (for :attr:`nepf_core.losses.LossConfig.w_material_range`)."""
         z = self.mlp(torch.cat([positional_encoding(x, self.cfg.n_freqs_x), n, feature], dim=-1))
         out = torch.sigmoid(z)
-        r_min = self.cfg.roughness_min
-        rough = out[..., 3] if r_min <= 0 else r_min + (1.0 - r_min) * out[..., 3]
         if with_logits:
-            return out[..., :3], rough, out[..., 4], z
-        return out[..., :3], rough, out[..., 4]
+            return out[..., :3], out[..., 3], out[..., 4], z
+        return out[..., :3], out[..., 3], out[..., 4]
 
 
 class Deviation(nn.Module):
