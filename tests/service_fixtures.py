@@ -22,7 +22,7 @@ import numpy as np
 from PIL import Image
 
 from nepf_core.pipeline import JobRequest
-from nepf_core.resume import drop_records_after
+from nepf_core.resume import checkpoint_step, cut_metrics_to_checkpoint, write_checkpoint_info
 
 REPO = Path(__file__).resolve().parent.parent
 TESTS = Path(__file__).resolve().parent
@@ -143,21 +143,14 @@ def _glb_bytes() -> bytes:
     return struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    """Temp file + rename, as ``nepf_core.checkpoint.save_checkpoint`` does: a ``kill -9`` mid-write
-    must leave the previous checkpoint, never an empty one (CI once killed the fake exactly there)."""
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def fake_pipeline(request: JobRequest) -> dict:
     """Stands in for ``nepf_core.pipeline.run_pipeline`` in service tests (``NEPF_PIPELINE=
     service_fixtures:fake_pipeline``): same contract, no torch.
 
     Steps sleep ``NEPF_FAKE_STEP_S``; a checkpoint (``checkpoints/latest.json``, the file the core
-    writes beside ``latest.pt``) every 5 steps; metrics.jsonl with train/sync/test records, cut
-    back to the checkpoint on resume as the core does (``nepf_core.resume``); export (asset.glb,
+    writes beside ``latest.pt``, by the core's own ``nepf_core.resume`` functions) every 5 steps;
+    metrics.jsonl with train/sync/test records, cut back to the checkpoint on resume as the core
+    does; export (asset.glb,
     previews, manifest) at the end. Like the core, it first reports ``loading`` at step 0 and
     then "loads" for ``NEPF_FAKE_LOAD_S`` seconds (default 0).
     """
@@ -166,10 +159,9 @@ def fake_pipeline(request: JobRequest) -> dict:
     total = int(request.iters or 40)
     step_s = float(os.environ.get("NEPF_FAKE_STEP_S", "0.05"))
     ck = run / "checkpoints" / "latest.json"
-    start = 0
-    if resume and ck.exists():
-        start = json.loads(ck.read_text())["step"]
-        drop_records_after(run / "metrics.jsonl", start)
+    start = (checkpoint_step(run) if resume else None) or 0
+    if start:
+        cut_metrics_to_checkpoint(run, start)
     if callbacks is not None:
         callbacks.progress({"step": 0, "total": 0, "fraction": 0.0, "stage": "loading", "eta_s": None, "wall_s": 0.0})
     time.sleep(float(os.environ.get("NEPF_FAKE_LOAD_S", "0")))
@@ -190,7 +182,7 @@ def fake_pipeline(request: JobRequest) -> dict:
             mf.write(json.dumps({"step": step, "wall_s": time.time() - t0, "kind": "sync", "psnr_r": 20 + step / 10,
                                  "psnr_surf": 19 + step / 10, "psnr_vol": 18 + step / 10}) + "\n")
             mf.flush()   # the records reach the file before the checkpoint names their step, as in the core
-            _write_atomic(ck, json.dumps({"step": step}))
+            write_checkpoint_info(run, step, time.time() - t0, mf.tell())
             if callbacks is not None:   # as the core does: the worker keeps it (object store)
                 callbacks.checkpoint(step, str(ck))
         mf.flush()
@@ -199,8 +191,9 @@ def fake_pipeline(request: JobRequest) -> dict:
                                 "eta_s": (total - step) * step_s, "wall_s": time.time() - t0})
     mf.write(json.dumps({"step": step, "wall_s": time.time() - t0, "kind": "test", "test_psnr": 21.0,
                          "chamfer": 0.01, "albedo_psnr": 18.0}) + "\n")
+    mf.flush()
+    write_checkpoint_info(run, step, time.time() - t0, mf.tell())
     mf.close()
-    _write_atomic(ck, json.dumps({"step": step}))
     if callbacks is not None:
         callbacks.checkpoint(step, str(ck))
     (run / "report.json").write_text(json.dumps({"decisions": [
