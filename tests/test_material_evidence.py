@@ -113,29 +113,6 @@ def test_a_half_metal_half_dielectric_sphere_splits(tilt_deg):
                                                                          pytest.approx(0.45))
 
 
-def test_a_point_the_network_does_not_fit_says_less():
-    """The floor ``eps`` is each point's own-pixel error where that exceeds RESIDUAL_FLOOR. With the
-    exact metal colours (its residual 0) and the dielectric's relative residual ``r_d`` (read at
-    eps = 0), the confidence is ``r_d / (r_d + eps)``: hand-worked from the module's formulas."""
-    g = torch.Generator().manual_seed(5)
-    n = _sphere_points(64, g)
-    l = _unit(torch.tensor([0.2, 0.1, 1.0])).expand_as(n)
-    v = _hemisphere_dirs(n, 8, g)
-    valid = (v * n[:, None]).sum(-1) > me.MIN_FACING_COS
-    G = len(me.ROUGHNESS_GRID)
-    A, B = me.hypothesis_basis(n, l, v)
-    h = G + 2                                                                    # metal, roughness 0.3
-    c = 0.7 * (A[:, h, :, None] * torch.tensor(GOLD) + B[:, h, :, None])
-    r_d = me.fit_hypotheses(c, A, B, valid, floor=0.0)[:, :G].min(1).values
-    rgb = torch.rand(64, 3, generator=g) + 0.1
-    own = me.own_pixel_error(rgb * 1.5, rgb)                                     # 0.25 at every point
-    assert torch.allclose(own, torch.full((64,), 0.25))
-    for eps in (me.RESIDUAL_FLOOR, 0.25):
-        ev = me.material_evidence(c, n, l, v, valid, search_light=False, floor=torch.full((64,), eps))
-        sure = r_d > 1e-3
-        assert torch.allclose(ev.metallic_confidence[sure], (r_d / (r_d + eps))[sure], rtol=1e-3)
-
-
 def test_without_the_light_search_a_tilted_light_costs_metals():
     """The reason for :func:`light_candidates`: at the tilted light alone fewer metals are found."""
     g = torch.Generator().manual_seed(3)
@@ -219,13 +196,6 @@ def test_gather_evidence_uses_only_facing_cameras_that_see_the_point():
     eb = me.gather_evidence(model, x, n, model.light.expand(2, 3), torch.ones(2, dtype=torch.bool), cams,
                             torch.Generator().manual_seed(0))
     assert eb.rays.tolist() == [0]                    # the bottom point has fewer than MIN_VIEWS views
-    # the point's own-pixel error raises its floor: a low one leaves the evidence as it was, a high
-    # one is the floor its residuals are scored with (the same views: the same generator seed)
-    for own, eps in ((0.001, me.RESIDUAL_FLOOR), (0.3, 0.3)):
-        got = me.gather_evidence(model, x, n, model.light.expand(2, 3), torch.ones(2, dtype=torch.bool), cams,
-                                 torch.Generator().manual_seed(0), own_error=torch.full((2,), own))
-        at_floor = eb.evidence.residual - me.RESIDUAL_FLOOR + eps
-        assert torch.allclose(got.evidence.residual, at_floor, rtol=1e-5)
     # an occluder between the point and the cameras (inside the unit sphere, where the march looks)
     blocked = _SphereModel(lambda p: torch.minimum(p.norm(dim=-1) - 0.5,
                                                    (p - torch.tensor([0.0, 0.0, 0.8])).norm(dim=-1) - 0.1))

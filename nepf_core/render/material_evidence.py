@@ -107,10 +107,10 @@ def hypothesis_basis(n: Tensor, l: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
     return A, B
 
 
-def fit_hypotheses(c: Tensor, A: Tensor, B: Tensor, valid: Tensor, floor: Tensor | float = RESIDUAL_FLOOR) -> Tensor:
+def fit_hypotheses(c: Tensor, A: Tensor, B: Tensor, valid: Tensor) -> Tensor:
     """Relative residuals ``e [P, H]`` of the best ``(a, beta)`` per hypothesis (module docstring)
     for the colours ``c [P, K, 3]`` (linear), the basis ``A, B [P, H, K]`` and the views that count
-    ``valid [P, K]`` (bool); ``floor``: ``eps``, a number or ``[P]`` (each point's own).
+    ``valid [P, K]`` (bool).
 
     Everything is done on the sums ``S_XY = sum_k X_k Y_k`` over the valid views (the fit's
     sufficient statistics), so the rounds cost nothing per view. The start is the unconstrained
@@ -153,8 +153,7 @@ def fit_hypotheses(c: Tensor, A: Tensor, B: Tensor, valid: Tensor, floor: Tensor
         beta = (lin / q.clamp_min(1e-12)).clamp_min(0.0)
     sse = (beta * beta * q - 2.0 * beta * lin + s_cc).clamp_min(0.0)
     power = s_cc.clamp_min(1e-12)
-    eps = torch.as_tensor(floor, dtype=sse.dtype, device=sse.device).reshape(-1, 1)
-    return (sse + eps * power) / power
+    return (sse + RESIDUAL_FLOOR * power) / power
 
 
 def evidence_from_residuals(e: Tensor) -> MaterialEvidence:
@@ -187,24 +186,22 @@ def light_candidates(l: Tensor) -> Tensor:
 
 
 def material_evidence(c: Tensor, n: Tensor, l: Tensor, v: Tensor, valid: Tensor, *,
-                      search_light: bool = True, floor: Tensor | float = RESIDUAL_FLOOR) -> MaterialEvidence:
+                      search_light: bool = True) -> MaterialEvidence:
     """The evidence of the module docstring at ``P`` points: colours ``c [P, K, 3]`` (linear) seen
     along the unit directions toward the cameras ``v [P, K, 3]``, unit normal ``n [P, 3]``, unit
     light direction ``l [P, 3]``, ``valid [P, K]`` the views that count. With ``search_light``
     each hypothesis is scored at the best of :func:`light_candidates` (a learned light some
-    degrees off moves the highlight, and a fit at the wrong light prefers a broader lobe).
-    ``floor``: :func:`fit_hypotheses`'s ``eps`` (a number or ``[P]``). No grad."""
+    degrees off moves the highlight, and a fit at the wrong light prefers a broader lobe). No grad."""
     with torch.no_grad():
         if not search_light:
             A, B = hypothesis_basis(n, l, v)
-            return evidence_from_residuals(fit_hypotheses(c, A, B, valid, floor))
+            return evidence_from_residuals(fit_hypotheses(c, A, B, valid))
         P, K = v.shape[:2]
         ls = light_candidates(l)
         J = ls.shape[1]
         rep = lambda t: t[:, None].expand(P, J, *t.shape[1:]).reshape(P * J, *t.shape[1:])
         A, B = hypothesis_basis(rep(n), ls.reshape(P * J, 3), rep(v))
-        eps = torch.as_tensor(floor, dtype=n.dtype, device=n.device).expand(P)
-        e = fit_hypotheses(rep(c), A, B, rep(valid), rep(eps)).reshape(P, J, -1).min(1).values
+        e = fit_hypotheses(rep(c), A, B, rep(valid)).reshape(P, J, -1).min(1).values
         return evidence_from_residuals(e)
 
 
@@ -267,13 +264,10 @@ def views_of_points(model, x: Tensor, n: Tensor, cams: Tensor, k: int,
 
 def gather_evidence(model, x: Tensor, n: Tensor, light_dir: Tensor, keep: Tensor, cams: Tensor,
                     generator: torch.Generator | None = None, *, points: int = POINTS_PER_STEP,
-                    k: int = VIEWS_PER_POINT, own_error: Tensor | None = None) -> EvidenceBatch:
+                    k: int = VIEWS_PER_POINT) -> EvidenceBatch:
     """The evidence at up to ``points`` rays drawn among ``keep [R]`` (bool: lit foreground), at
     their surface points ``x, n, light_dir [R, 3]`` (detached here), cameras ``cams [C, 3]``
-    (normalised frame). Points seen by fewer than :data:`MIN_VIEWS` cameras are left out.
-    ``own_error [R]``: the radiance network's relative squared error at each ray's own pixel
-    (:func:`own_pixel_error`); a point's floor ``eps`` is the larger of it and
-    :data:`RESIDUAL_FLOOR`, so a point the network does not yet fit says less."""
+    (normalised frame). Points seen by fewer than :data:`MIN_VIEWS` cameras are left out."""
     rows = keep.nonzero(as_tuple=True)[0]
     if rows.numel() == 0:
         return EvidenceBatch(rays=rows, evidence=_no_evidence(x))
@@ -286,13 +280,4 @@ def gather_evidence(model, x: Tensor, n: Tensor, light_dir: Tensor, keep: Tensor
     rows, c, v, valid, n, l = rows[enough], c[enough], v[enough], valid[enough], n[enough], l[enough]
     if rows.numel() == 0:
         return EvidenceBatch(rays=rows, evidence=_no_evidence(x))
-    floor = RESIDUAL_FLOOR if own_error is None else own_error.detach()[rows].to(n.dtype).clamp_min(RESIDUAL_FLOOR)
-    return EvidenceBatch(rays=rows, evidence=material_evidence(c, n, l, v, valid, floor=floor))
-
-
-def own_pixel_error(rgb_r: Tensor, rgb: Tensor) -> Tensor:
-    """``[R]``: ``|C_r - C|^2 / |C|^2`` over the channels (linear), the radiance network's volume
-    render ``rgb_r [R, 3]`` against each ray's pixel ``rgb [R, 3]``: how far the colours the evidence
-    reads (:func:`views_of_points`) can be trusted at that point. No grad."""
-    with torch.no_grad():
-        return ((rgb_r - rgb) ** 2).sum(-1) / (rgb * rgb).sum(-1).clamp_min(1e-6)
+    return EvidenceBatch(rays=rows, evidence=material_evidence(c, n, l, v, valid))

@@ -34,7 +34,7 @@ from nepf_core.data.scene import Scene
 from nepf_core.losses import compute_losses, needs_lobe_split, total_loss
 from nepf_core.model import NePFModel
 from nepf_core.rays import PixelSampler
-from nepf_core.render.material_evidence import gather_evidence, own_pixel_error
+from nepf_core.render.material_evidence import gather_evidence
 from nepf_core.render.neus import foreground
 from nepf_core.render.renderer import SurfaceRequest, render_background_only, render_rays
 from nepf_core.reframe import reframe_scene
@@ -285,8 +285,7 @@ class TrainingRun:
         if rays.unlit is not None:
             keep = keep & ~rays.unlit
         s = out.surface
-        return gather_evidence(self.model, s.x, s.normal, s.light_dir, keep, self.camera_centres, self.gen,
-                               own_error=own_pixel_error(out.rgb_r, rays.rgb))
+        return gather_evidence(self.model, s.x, s.normal, s.light_dir, keep, self.camera_centres, self.gen)
 
     def _after_step(self, rays, out, losses) -> None:
         """The rules, the weight average's restart, records, sync/held-out evaluations, checkpoints."""
