@@ -92,6 +92,9 @@ def shading_rows(run: Path, scene_dir: Path, min_albedo: float = 0.5) -> dict:
             (img[v].mean(-1) / alb_gt[v].mean(-1).clip(1e-3))[keep],
         ], -1))
     R = np.concatenate(cols)
+    if len(R) == 0:
+        raise SystemExit(f"shading_report: no lit foreground pixel of {scene_dir.name} has a GT albedo luminance "
+                         f">= {min_albedo} (the scene's albedo is darker: try a smaller --min-albedo)")
     out = {"pixels": int(len(R)), "light_dir_error_deg_median": float(np.median(R[:, 0])),
            "light_dir_error_deg_p90": float(np.percentile(R[:, 0], 90)), "quintiles": []}
     edges = np.percentile(R[:, 5], [0, 20, 40, 60, 80, 100])
