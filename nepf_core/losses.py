@@ -131,10 +131,6 @@ class LossConfig:
     the glTF BSDF fitted as a dielectric and as a metal at several roughnesses and light
     directions, each at its own best albedo), weighted by how clearly one kind fits better. Not
     in the paper (0 in ``paper``)."""
-    w_highlight_light: float = 0.0
-    """Pull the photon network's light direction at saturated highlights toward the mirror
-    direction of the ray about the normal (:mod:`nepf_core.render.highlight_light`:
-    ``mean (1 - l . r)``). Not in the paper (0 in ``paper``)."""
     w_surface_points: float = 0.0
     """Without masks: ``mean |f(p)|`` at the points triangulated from the images in the object
     region (:mod:`nepf_core.train.surface_points`, Geo-NeuS's sparse-point SDF loss). Not in the
@@ -362,13 +358,6 @@ def loss_material_evidence(b: LossBatch) -> Tensor:
     return (ev.metallic_confidence * (s.metallic[eb.rays] - ev.metallic).abs()).mean()
 
 
-def loss_highlight_light(b: LossBatch) -> Tensor:
-    hb = b.out.highlight_light
-    if hb.target.shape[0] == 0:
-        return b.zero
-    return (1.0 - (hb.light_dir * hb.target).sum(-1)).mean()
-
-
 def loss_surface_points(b: LossBatch) -> Tensor:
     return b.surface_points()
 
@@ -405,8 +394,6 @@ LOSS_TERMS: tuple[LossTerm, ...] = (
     LossTerm("loss_metallic_unseen", "w_metallic_unseen", loss_metallic_unseen, lobe_split=True),
     LossTerm("loss_material_evidence", "w_material_evidence", loss_material_evidence,
              present=lambda b: b.out.material_evidence is not None),   # only the training step gathers it
-    LossTerm("loss_highlight_light", "w_highlight_light", loss_highlight_light,
-             present=lambda b: b.out.highlight_light is not None),     # only the training step gathers it
     LossTerm("loss_surface_points", "w_surface_points", loss_surface_points,
              present=lambda b: b.surface_points is not None),
 )

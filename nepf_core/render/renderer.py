@@ -138,10 +138,6 @@ class RenderOutput:
     """What the radiance field across views says the material is at some surface points
     (:class:`nepf_core.render.material_evidence.EvidenceBatch`); set by the training step when
     ``loss.w_material_evidence > 0`` (it knows the cameras), else None."""
-    highlight_light: object | None = None
-    """The photon network's direction at saturated highlights and the mirror directions there
-    (:class:`nepf_core.render.highlight_light.HighlightBatch`); set by the training step when
-    ``loss.w_highlight_light > 0``, else None."""
     metal_share: Tensor | None = None
     """``[R]`` in ``[0, 1)``: how firmly the evidence recorded near each ray's surface point says
     metal (:class:`nepf_core.train.metal_record.MetalRecord`), which lifts the unseen-lobe prior

@@ -34,7 +34,6 @@ from nepf_core.data.scene import Scene
 from nepf_core.losses import compute_losses, needs_lobe_split, total_loss
 from nepf_core.model import NePFModel
 from nepf_core.rays import PixelSampler
-from nepf_core.render.highlight_light import gather_highlights
 from nepf_core.render.material_evidence import gather_evidence
 from nepf_core.render.neus import foreground
 from nepf_core.render.renderer import SurfaceRequest, render_background_only, render_rays
@@ -256,8 +255,6 @@ class TrainingRun:
                 ev, x = out.material_evidence.evidence, out.surface.x
                 self.metal_record.update(x[out.material_evidence.rays], ev.metallic, ev.metallic_confidence)
                 out.metal_share = self.metal_record.metal_share(x)
-        if loss_cfg.w_highlight_light > 0:
-            out.highlight_light = self._highlights(rays, out)
         points = None if self.surface_points is None else (lambda: self.surface_points.loss(model, self.gen))
         losses = compute_losses(out, rays, loss_cfg, use_mask=rs.use_mask_loss, specular=rs.specular,
                                 background=rs.background, background_rays=background_rays, surface_points=points)
@@ -289,14 +286,6 @@ class TrainingRun:
             keep = keep & ~rays.unlit
         s = out.surface
         return gather_evidence(self.model, s.x, s.normal, s.light_dir, keep, self.camera_centres, self.gen)
-
-    def _highlights(self, rays, out):
-        """The saturated highlights among the foreground rays (:mod:`nepf_core.render.highlight_light`)."""
-        keep = foreground(out.weight_sum)
-        if rays.mask is not None:
-            keep = keep & (rays.mask > 0.5)
-        s = out.surface
-        return gather_highlights(self.model, s.x, s.normal, s.direction, rays.rgb, keep, self.camera_centres, self.gen)
 
     def _after_step(self, rays, out, losses) -> None:
         """The rules, the weight average's restart, records, sync/held-out evaluations, checkpoints."""
