@@ -80,11 +80,6 @@ class RenderConfig:
     photon field (direction, intensity) and geometry may explain the darkness. A pixel that
     received no light carries no information on the albedo; letting its error reach the albedo
     drives the albedo to 0 in shadows (docs/FAST.md, "Albedo in unlit regions")."""
-    roughness_gate_inv_s: float = 0.0
-    """> 0: the BSDF reads the roughness detached while NeuS's sharpness ``inv_s`` is below this,
-    so the colour losses choose the roughness only once the surface is sharp (``inv_s`` 30: a
-    density band of ~4 px at the object) and the light has had time to settle; the priors on it
-    still act. 0: never detached (``paper``)."""
     albedo_smooth_sigma: float = 0.0
     """Training only, > 0: also query the material network at ``x* + N(0, sigma^2 I)`` next
     to each surface point (:attr:`Surface.jitter`) for the smoothness priors

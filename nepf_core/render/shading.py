@@ -79,17 +79,15 @@ def shade_points(model, cfg, shading: Shading, xs: Tensor, vs: Tensor, ns: Tenso
             (albedo, rough, metal), z = model.material(xs, ns, fs), None
     light_dir, intensity = light_dir.float(), intensity.float()
     albedo, rough, metal = albedo.float(), rough.float(), metal.float()
-    albedo_shade, rough_shade = albedo, rough
-    if cfg.roughness_gate_inv_s > 0:   # a tensor comparison: no host sync
-        rough_shade = torch.where(model.deviation() < cfg.roughness_gate_inv_s, rough.detach(), rough)
+    albedo_shade = albedo
     if cfg.unlit_albedo_stopgrad and unlit is not None:
         albedo_shade = torch.where(unlit[:, None], albedo.detach(), albedo)
     if not shading.specular:  # lobe dropped: (1 - w m) f_d(c) + w f_s, w fading to 0 (a dielectric diffuse)
-        pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal[:, None],
+        pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
                                      intensity[:, None], shading.diffuse_metal_weight, lambertian=cfg.lambertian,
                                      kind=cfg.bsdf_kind)
     else:
-        pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal[:, None],
+        pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
                          intensity[:, None], lambertian=cfg.lambertian, specular=True, kind=cfg.bsdf_kind)
     return PointShading(pbr, light_dir, intensity, albedo, rough, metal, None if z is None else z.float())
 
