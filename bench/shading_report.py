@@ -93,7 +93,7 @@ def shading_rows(run: Path, scene_dir: Path, min_albedo: float = 0.5) -> dict:
         ], -1))
     R = np.concatenate(cols)
     if len(R) == 0:
-        raise SystemExit(f"shading_report: no lit foreground pixel of {scene_dir.name} has a GT albedo luminance "
+        raise ValueError(f"no lit foreground pixel of {scene_dir.name} has a GT albedo luminance "
                          f">= {min_albedo} (the scene's albedo is darker: try a smaller --min-albedo)")
     out = {"pixels": int(len(R)), "light_dir_error_deg_median": float(np.median(R[:, 0])),
            "light_dir_error_deg_p90": float(np.percentile(R[:, 0], 90)), "quintiles": []}
@@ -113,7 +113,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("scene", type=Path)
     ap.add_argument("--min-albedo", type=float, default=0.5, help="GT albedo luminance of the pixels kept")
     a = ap.parse_args(argv)
-    rep = shading_rows(a.run, a.scene, a.min_albedo)
+    try:
+        rep = shading_rows(a.run, a.scene, a.min_albedo)
+    except ValueError as e:   # an error, not an exit, in shading_rows: a suite run (bench/child.py) records it and goes on
+        raise SystemExit(f"shading_report: {e}") from None
     print(f"{rep['pixels']} pixels; light direction error: median {rep['light_dir_error_deg_median']:.1f} deg, "
           f"90th percentile {rep['light_dir_error_deg_p90']:.1f} deg")
     print("| GT shading | n.l GT | n.l recovered | irradiance I n.l | albedo recovered / GT |")

@@ -150,8 +150,7 @@ def fake_pipeline(request: JobRequest) -> dict:
     Steps sleep ``NEPF_FAKE_STEP_S``; a checkpoint (``checkpoints/latest.json``, the file the core
     writes beside ``latest.pt``, by the core's own ``nepf_core.resume`` functions) every 5 steps;
     metrics.jsonl with train/sync/test records, cut back to the checkpoint on resume as the core
-    does; export (asset.glb,
-    previews, manifest) at the end. Like the core, it first reports ``loading`` at step 0 and
+    does; export (asset.glb, previews, manifest) at the end. Like the core, it first reports ``loading`` at step 0 and
     then "loads" for ``NEPF_FAKE_LOAD_S`` seconds (default 0).
     """
     run, data_dir, callbacks, resume = Path(request.run_dir), request.data_dir, request.callbacks, request.resume
