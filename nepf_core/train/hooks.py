@@ -18,6 +18,13 @@ class TrainHooks:
     def before_step(self, run, step: int) -> None:
         """Before the rays of step ``step + 1`` are drawn (learning rate already set)."""
 
+    def before_backward(self, run, step: int, losses: dict, loss_cfg) -> None:
+        """Step ``step``'s loss terms (``losses``: by name, unweighted, their graph alive, and
+        ``"loss"``, the weighted sum) and the :class:`~nepf_core.losses.LossConfig` in effect (the
+        run state's weights), before ``backward``. A probe may take ``torch.autograd.grad`` of any
+        term with ``retain_graph=True`` (which leaves every ``.grad`` as it was); it must not call
+        ``backward`` (bench/term_gradients.py)."""
+
     def after_step(self, run, step: int, out, losses: dict) -> None:
         """After the optimiser step ``step`` (``out``: the RenderOutput, ``losses``: the terms)."""
 

@@ -259,6 +259,8 @@ class TrainingRun:
         losses = compute_losses(out, rays, loss_cfg, use_mask=rs.use_mask_loss, specular=rs.specular,
                                 background=rs.background, background_rays=background_rays, surface_points=points)
         loss = losses["loss"] = total_loss(losses, loss_cfg)
+        for h in self.hooks:
+            h.before_backward(self, self.step + 1, losses, loss_cfg)
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         gn = torch.nn.utils.clip_grad_norm_(model.parameters(), tc.grad_clip if tc.grad_clip > 0 else float("inf"))
