@@ -92,21 +92,26 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("data", help="a dataset folder (a scene's input/dtu)")
     p.add_argument("--steps", default="50,100,200,400,600", help="comma-separated steps to probe")
     p.add_argument("--head", default="material", choices=sorted(OUTPUT_NAMES))
+    p.add_argument("--iters", type=int, default=1000,
+                   help="the run's nominal length, which sets its schedule (warm-ups, coarse-to-fine, the rules' "
+                        "warm-up); it stops after the last probed step (default: the suite's 1,000-step screens)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
     p.add_argument("--override", action="append", default=[], metavar="section.field=VALUE")
     p.add_argument("--out", required=True, help="the run folder; term_gradients.json is written there")
     args = p.parse_args(argv)
+    from nepf_core.callbacks import FitCallbacks
     from nepf_core.data.detect import load_scene
     from nepf_core.jobs import build_config
     from nepf_core.train import fit
     steps = sorted({int(s) for s in args.steps.split(",") if s.strip()})
-    if not steps or steps[0] < 1:
-        raise SystemExit("--steps: give positive step numbers, e.g. 50,200,600")
+    if not steps or steps[0] < 1 or steps[-1] > args.iters:
+        raise SystemExit(f"--steps: give step numbers from 1 to --iters ({args.iters}), e.g. 50,200,600")
     torch.set_num_threads(args.threads)
-    cfg = build_config("fast", steps[-1], {"train.eval_every_s": 0.0, **_parse_overrides(args.override)})
+    cfg = build_config("fast", args.iters, {"train.eval_every_s": 0.0, **_parse_overrides(args.override)})
     probe = TermGradients(args.head, steps)
-    fit(load_scene(args.data), args.out, cfg, device=args.device, hooks=[probe])
+    done = FitCallbacks(should_stop=lambda: bool(probe.rows) and probe.rows[-1]["step"] >= steps[-1])
+    fit(load_scene(args.data), args.out, cfg, device=args.device, hooks=[probe], callbacks=done)
     Path(args.out, "term_gradients.json").write_text(json.dumps(probe.rows, indent=1))
     print(format_rows(probe.rows, args.head))
     return 0
