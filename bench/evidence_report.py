@@ -15,6 +15,8 @@ training term does. It prints:
 * the evidence's roughness against the truth (median of each, and the MAE).
 
 So it says whether the evidence can be trusted on a kind of scene before a suite is run with it.
+With ``--true-lights`` it also scores the same points at the scene's true light directions and
+splits the metals' call rate by the fill light's share (:mod:`bench.evidence_lights`).
 """
 
 from __future__ import annotations
@@ -26,14 +28,21 @@ from pathlib import Path
 import numpy as np
 
 
-def evidence_rows(run: Path, scene_dir: Path, points_per_view: int = 250, seed: int = 0) -> dict:
+def lit_test_points(run: Path, scene_dir: Path, points_per_view: int = 250, seed: int = 0) -> dict:
+    """Up to ``points_per_view`` lit GT-foreground pixels of each test view, at the run's surface
+    point, with the radiance network's colours toward the training cameras that face and see it
+    (points seen by fewer than ``MIN_VIEWS`` are left out). Returns tensors ``c, v, valid`` (as
+    :func:`~nepf_core.render.material_evidence.views_of_points`), ``x, n, l [P, 3]`` (normalised
+    frame; the run's normal and learned light), arrays ``metallic_gt, roughness_gt [P]``,
+    ``x_world, n_gt_world [P, 3]`` (the run's point and the true normal, world frame) and
+    ``rotation [3, 3]``, the normalised frame's axes in world (``u_norm = u_world @ rotation``)."""
     import torch
 
     from bench.shading_report import training_image
     from nepf_core.rays import PixelSampler, unlit_threshold
     from nepf_core.reframe import load_held_out
     from nepf_core.relight.metrics import FOREGROUND_ALPHA
-    from nepf_core.render.material_evidence import MIN_VIEWS, VIEWS_PER_POINT, material_evidence, views_of_points
+    from nepf_core.render.material_evidence import MIN_VIEWS, VIEWS_PER_POINT, views_of_points
     from nepf_core.train import load_model
 
     torch.manual_seed(seed)
@@ -49,7 +58,7 @@ def evidence_rows(run: Path, scene_dir: Path, points_per_view: int = 250, seed: 
     lit = fg & (img.max(-1) >= unlit_threshold(img, fg, 0.01))   # training gathers evidence on lit rays only
     rng = np.random.default_rng(seed)
     sampler = PixelSampler(test, "cpu")
-    cols: dict[str, list] = {k: [] for k in ("x", "n", "l", "metallic", "roughness")}
+    cols: dict[str, list] = {k: [] for k in ("x", "n", "l", "metallic", "roughness", "n_gt")}
     for v in range(test.n_views):
         r = sampler.view_rays(v)
         x = r.origins.numpy() + r.directions.numpy() * pred["depth"][v].reshape(-1, 1).astype(np.float32)
@@ -60,14 +69,36 @@ def evidence_rows(run: Path, scene_dir: Path, points_per_view: int = 250, seed: 
         cols["l"].append(pred["light_dir"][v].reshape(-1, 3)[keep])
         cols["metallic"].append(gt["metallic"][v].reshape(-1)[keep])
         cols["roughness"].append(gt["roughness"][v].reshape(-1)[keep])
+        cols["n_gt"].append(gt["normal_world"][v].reshape(-1, 3)[keep])
     x, n, l = (torch.nn.functional.normalize(torch.tensor(np.concatenate(cols[k]), dtype=torch.float32), dim=-1)
                if k != "x" else torch.tensor(np.concatenate(cols[k]), dtype=torch.float32) for k in ("x", "n", "l"))
     with torch.no_grad():
         c, vdir, valid = views_of_points(model, x, n, cams, VIEWS_PER_POINT, torch.Generator().manual_seed(seed))
-        ok = valid.sum(-1) >= MIN_VIEWS
-        ev = material_evidence(c[ok], n[ok], l[ok], vdir[ok], valid[ok])
-    m_gt = np.concatenate(cols["metallic"]).astype(np.float32)[ok.numpy()]
-    r_gt = np.concatenate(cols["roughness"]).astype(np.float32)[ok.numpy()]
+    ok = valid.sum(-1) >= MIN_VIEWS
+    keep = ok.numpy()
+    lin = wfn[:3, :3]
+    x_np = x.numpy().astype(np.float64)[keep]
+    return {"c": c[ok], "v": vdir[ok], "valid": valid[ok], "x": x[ok], "n": n[ok], "l": l[ok],
+            "metallic_gt": np.concatenate(cols["metallic"]).astype(np.float32)[keep],
+            "roughness_gt": np.concatenate(cols["roughness"]).astype(np.float32)[keep],
+            "x_world": x_np @ lin.T + wfn[:3, 3], "n_gt_world": np.concatenate(cols["n_gt"]).astype(np.float64)[keep],
+            "rotation": lin / np.cbrt(abs(np.linalg.det(lin)))}
+
+
+def evidence_rows(run: Path, scene_dir: Path, points_per_view: int = 250, seed: int = 0) -> dict:
+    """The report of the module docstring (one dict)."""
+    return rows_of_points(lit_test_points(run, scene_dir, points_per_view, seed))
+
+
+def rows_of_points(pts: dict) -> dict:
+    """The evidence with the learned light at :func:`lit_test_points`'s points, against the truth."""
+    import torch
+
+    from nepf_core.render.material_evidence import material_evidence
+
+    with torch.no_grad():
+        ev = material_evidence(pts["c"], pts["n"], pts["l"], pts["v"], pts["valid"])
+    m_gt, r_gt = pts["metallic_gt"], pts["roughness_gt"]
     m, q, rough = ev.metallic.numpy(), ev.metallic_confidence.numpy(), ev.roughness.numpy()
     metal = m_gt > 0.5
 
@@ -77,7 +108,7 @@ def evidence_rows(run: Path, scene_dir: Path, points_per_view: int = 250, seed: 
         return {"points": int(sel.sum()), "called_metal": float((m[sel] > 0.5).mean()),
                 "called_metal_confidently": float(((m > 0.5) & (q > 0.1))[sel].mean())}
 
-    return {"points": int(ok.sum()), "on_metals": called(metal), "on_dielectrics": called(~metal),
+    return {"points": int(len(m_gt)), "on_metals": called(metal), "on_dielectrics": called(~metal),
             "metallic_error_confidence_weighted": float((q * np.abs(m - m_gt)).sum() / max(q.sum(), 1e-12)),
             "roughness_median": float(np.median(rough)), "roughness_gt_median": float(np.median(r_gt)),
             "roughness_mae": float(np.abs(rough - r_gt).mean())}
@@ -89,8 +120,15 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("scene", type=Path)
     ap.add_argument("--points-per-view", type=int, default=250)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--true-lights", action="store_true",
+                    help="also score the points with the scene's true lights (bench/evidence_lights.py)")
     a = ap.parse_args(argv)
-    print(json.dumps(evidence_rows(a.run, a.scene, a.points_per_view, a.seed), indent=1))
+    pts = lit_test_points(a.run, a.scene, a.points_per_view, a.seed)
+    report = rows_of_points(pts)
+    if a.true_lights:
+        from bench.evidence_lights import true_light_rows
+        report["true_lights"] = true_light_rows(pts, a.scene)
+    print(json.dumps(report, indent=1))
 
 
 if __name__ == "__main__":
