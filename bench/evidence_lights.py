@@ -61,34 +61,37 @@ def _nnls_two(g11: Tensor, g22: Tensor, g12: Tensor, y1: Tensor, y2: Tensor) -> 
 
 
 def _one_light_albedo(c: Tensor, w: Tensor, A: Tensor, B: Tensor) -> Tensor:
-    """``a [P, H, 1, 3]``: the albedo of the unconstrained one-light least squares in
-    ``(alpha_c, beta)`` (the start of :func:`~nepf_core.render.material_evidence.fit_hypotheses`),
-    clamped to [0, 1]; 0.5 where it is degenerate."""
+    """``a [P, H, 1, 3]``: the start of the one-light fit,
+    :func:`~nepf_core.render.material_evidence.least_squares_albedo` of light ``A, B``, for the
+    layout of :func:`fit_two_lights` (``c [P, 1, K, 3]``, ``w [P, 1, K, 1]``, ``A, B [P, H, K, 1]``)."""
+    from nepf_core.render.material_evidence import least_squares_albedo
+
     Aw, Bw = A * w, B * w
-    s_aa, s_bb, s_ab = (Aw * Aw).sum((-1, -2)), (Bw * Bw).sum((-1, -2)), (Aw * Bw).sum((-1, -2))
-    s_ac, s_bc = (Aw * c).sum(-2), (Bw * c).sum(-2)                          # [P, H, 3]
-    s_aa_safe = s_aa.clamp_min(1e-30)
-    det = 3.0 * (s_bb - s_ab * s_ab / s_aa_safe)
-    beta = ((s_bc.sum(-1) - s_ab * s_ac.sum(-1) / s_aa_safe) / det.clamp_min(1e-30)).clamp_min(1e-30)
-    a = ((s_ac - beta[..., None] * s_ab[..., None]) / (beta * s_aa_safe)[..., None]).clamp(0.0, 1.0)
-    return torch.where((det > 1e-30)[..., None], a, torch.full_like(a, 0.5))[..., None, :]
+    sums = ((Aw * Aw).sum((-1, -2)), (Bw * Bw).sum((-1, -2)), (Aw * Bw).sum((-1, -2)),
+            (Aw * c).sum(-2), (Bw * c).sum(-2))
+    return least_squares_albedo(*sums)[..., None, :]
+
+
+def _betas(c: Tensor, w: Tensor, A1: Tensor, B1: Tensor, A2: Tensor, B2: Tensor, a: Tensor):
+    """``(G1, G2, b1, b2)``: each light's weighted shading ``G_j = (a A_j + B_j) w`` at the albedo
+    ``a`` and the betas that fit it best (:func:`_nnls_two`)."""
+    G1, G2 = (a * A1 + B1) * w, (a * A2 + B2) * w
+    b1, b2 = _nnls_two((G1 * G1).sum((-1, -2)), (G2 * G2).sum((-1, -2)), (G1 * G2).sum((-1, -2)),
+                       (G1 * c).sum((-1, -2)), (G2 * c).sum((-1, -2)))
+    return G1, G2, b1, b2
 
 
 def _alternate(c: Tensor, w: Tensor, A1: Tensor, B1: Tensor, A2: Tensor, B2: Tensor, a: Tensor) -> Tensor:
     """The squared error ``[P, H]`` after :data:`FIT_ROUNDS` rounds from the albedo ``a``: the
-    betas exactly for fixed ``a`` (:func:`_nnls_two`), then ``a`` exactly per channel for fixed
+    betas exactly for fixed ``a`` (:func:`_betas`), then ``a`` exactly per channel for fixed
     betas (clamped; kept where both betas are 0). Never rises from round to round."""
+    G1, G2, b1, b2 = _betas(c, w, A1, B1, A2, B2, a)
     for _ in range(FIT_ROUNDS):
-        G1, G2 = (a * A1 + B1) * w, (a * A2 + B2) * w
-        b1, b2 = _nnls_two((G1 * G1).sum((-1, -2)), (G2 * G2).sum((-1, -2)), (G1 * G2).sum((-1, -2)),
-                           (G1 * c).sum((-1, -2)), (G2 * c).sum((-1, -2)))
         U = (b1[..., None, None] * A1 + b2[..., None, None] * A2) * w
         W = (b1[..., None, None] * B1 + b2[..., None, None] * B2) * w
         uu = (U * U).sum(-2, keepdim=True)
         a = torch.where(uu > 1e-30, ((U * (c * w - W)).sum(-2, keepdim=True) / uu.clamp_min(1e-30)).clamp(0.0, 1.0), a)
-    G1, G2 = (a * A1 + B1) * w, (a * A2 + B2) * w
-    b1, b2 = _nnls_two((G1 * G1).sum((-1, -2)), (G2 * G2).sum((-1, -2)), (G1 * G2).sum((-1, -2)),
-                       (G1 * c).sum((-1, -2)), (G2 * c).sum((-1, -2)))
+        G1, G2, b1, b2 = _betas(c, w, A1, B1, A2, B2, a)
     fit = b1[..., None, None] * G1 + b2[..., None, None] * G2
     return ((fit - c * w) ** 2).sum((-1, -2))
 
@@ -173,11 +176,10 @@ def true_light_rows(pts: dict, scene_dir: Path) -> dict:
         ev = material_evidence(c, n, l, v, valid)
         rows[name] = _call_rates(ev.metallic.numpy() > 0.5, metal_gt, fill)
     if len(lights) == 2:
-        with torch.no_grad():
-            A1, B1 = hypothesis_basis(n, l_key, v)
-            A2, B2 = hypothesis_basis(n, to_norm(u_world[1 - key]), v)
-            for name, (a2, b2) in (("key_light_two_light_solver", (torch.zeros_like(A2), torch.zeros_like(B2))),
-                                   ("all_lights", (A2, B2))):
-                ev2 = evidence_from_residuals(fit_two_lights(c, A1, B1, a2, b2, valid))
-                rows[name] = _call_rates(ev2.metallic.numpy() > 0.5, metal_gt, fill)
+        A1, B1 = hypothesis_basis(n, l_key, v)
+        A2, B2 = hypothesis_basis(n, to_norm(u_world[1 - key]), v)
+        for name, (a2, b2) in (("key_light_two_light_solver", (torch.zeros_like(A2), torch.zeros_like(B2))),
+                               ("all_lights", (A2, B2))):
+            ev2 = evidence_from_residuals(fit_two_lights(c, A1, B1, a2, b2, valid))
+            rows[name] = _call_rates(ev2.metallic.numpy() > 0.5, metal_gt, fill)
     return rows

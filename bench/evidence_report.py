@@ -32,7 +32,7 @@ def lit_test_points(run: Path, scene_dir: Path, points_per_view: int = 250, seed
     """Up to ``points_per_view`` lit GT-foreground pixels of each test view, at the run's surface
     point, with the radiance network's colours toward the training cameras that face and see it
     (points seen by fewer than ``MIN_VIEWS`` are left out). Returns tensors ``c, v, valid`` (as
-    :func:`~nepf_core.render.material_evidence.views_of_points`), ``x, n, l [P, 3]`` (normalised
+    :func:`~nepf_core.render.material_evidence.views_of_points`), ``n, l [P, 3]`` (normalised
     frame; the run's normal and learned light), arrays ``metallic_gt, roughness_gt [P]``,
     ``x_world, n_gt_world [P, 3]`` (the run's point and the true normal, world frame) and
     ``rotation [3, 3]``, the normalised frame's axes in world (``u_norm = u_world @ rotation``)."""
@@ -78,7 +78,7 @@ def lit_test_points(run: Path, scene_dir: Path, points_per_view: int = 250, seed
     keep = ok.numpy()
     lin = wfn[:3, :3]
     x_np = x.numpy().astype(np.float64)[keep]
-    return {"c": c[ok], "v": vdir[ok], "valid": valid[ok], "x": x[ok], "n": n[ok], "l": l[ok],
+    return {"c": c[ok], "v": vdir[ok], "valid": valid[ok], "n": n[ok], "l": l[ok],
             "metallic_gt": np.concatenate(cols["metallic"]).astype(np.float32)[keep],
             "roughness_gt": np.concatenate(cols["roughness"]).astype(np.float32)[keep],
             "x_world": x_np @ lin.T + wfn[:3, 3], "n_gt_world": np.concatenate(cols["n_gt"]).astype(np.float64)[keep],
@@ -92,12 +92,9 @@ def evidence_rows(run: Path, scene_dir: Path, points_per_view: int = 250, seed: 
 
 def rows_of_points(pts: dict) -> dict:
     """The evidence with the learned light at :func:`lit_test_points`'s points, against the truth."""
-    import torch
-
     from nepf_core.render.material_evidence import material_evidence
 
-    with torch.no_grad():
-        ev = material_evidence(pts["c"], pts["n"], pts["l"], pts["v"], pts["valid"])
+    ev = material_evidence(pts["c"], pts["n"], pts["l"], pts["v"], pts["valid"])
     m_gt, r_gt = pts["metallic_gt"], pts["roughness_gt"]
     m, q, rough = ev.metallic.numpy(), ev.metallic_confidence.numpy(), ev.roughness.numpy()
     metal = m_gt > 0.5

@@ -107,6 +107,18 @@ def hypothesis_basis(n: Tensor, l: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
     return A, B
 
 
+def least_squares_albedo(s_aa: Tensor, s_bb: Tensor, s_ab: Tensor, s_ac: Tensor, s_bc: Tensor) -> Tensor:
+    """``a [..., 3]``: the albedo ``alpha_c / beta`` of the unconstrained least squares in
+    ``(alpha_c, beta)`` (the closed form of :func:`fit_hypotheses`'s docstring) from the sums
+    ``S_AA, S_BB, S_AB [...]`` and ``S_Ac, S_Bc [..., 3]``, clamped to [0, 1]; 0.5 where the
+    normal equations are singular (a hypothesis whose ``A`` and ``B`` are proportional)."""
+    s_aa_safe = s_aa.clamp_min(1e-12)
+    det = 3.0 * (s_bb - s_ab * s_ab / s_aa_safe)
+    beta = ((s_bc.sum(-1) - s_ab * s_ac.sum(-1) / s_aa_safe) / det.clamp_min(1e-12)).clamp_min(1e-12)
+    a = ((s_ac - beta[..., None] * s_ab[..., None]) / (beta * s_aa_safe)[..., None]).clamp(0.0, 1.0)
+    return torch.where((det > 1e-12)[..., None], a, torch.full_like(a, 0.5))
+
+
 def fit_hypotheses(c: Tensor, A: Tensor, B: Tensor, valid: Tensor) -> Tensor:
     """Relative residuals ``e [P, H]`` of the best ``(a, beta)`` per hypothesis (module docstring)
     for the colours ``c [P, K, 3]`` (linear), the basis ``A, B [P, H, K]`` and the views that count
@@ -133,11 +145,7 @@ def fit_hypotheses(c: Tensor, A: Tensor, B: Tensor, valid: Tensor) -> Tensor:
     s_aa, s_bb, s_ab = (Aw * Aw).sum(-1), (Bw * Bw).sum(-1), (Aw * Bw).sum(-1)           # [P, H]
     s_ac, s_bc = Aw @ c, Bw @ c                                                          # [P, H, 3]
     s_cc = (c * c * valid[..., None].to(c.dtype)).sum((1, 2))[:, None]                   # [P, 1]
-    s_aa_safe = s_aa.clamp_min(1e-12)
-    det = 3.0 * (s_bb - s_ab * s_ab / s_aa_safe)
-    beta = ((s_bc.sum(-1) - s_ab * s_ac.sum(-1) / s_aa_safe) / det.clamp_min(1e-12)).clamp_min(1e-12)
-    a = ((s_ac - beta[..., None] * s_ab[..., None]) / (beta * s_aa_safe)[..., None]).clamp(0.0, 1.0)
-    a = torch.where((det > 1e-12)[..., None], a, torch.full_like(a, 0.5))
+    a = least_squares_albedo(s_aa, s_bb, s_ab, s_ac, s_bc)
 
     def quadratic_and_linear(a):
         q = (a * a * s_aa[..., None] + 2.0 * a * s_ab[..., None] + s_bb[..., None]).sum(-1)
