@@ -16,7 +16,10 @@ training term does. It prints:
 
 So it says whether the evidence can be trusted on a kind of scene before a suite is run with it.
 With ``--true-lights`` it also scores the same points at the scene's true light directions and
-splits the metals' call rate by the fill light's share (:mod:`bench.evidence_lights`).
+splits the metals' call rate by the fill light's share (:mod:`bench.evidence_lights`). Two
+switches change what is fitted, to split the error: ``--pixels`` reads the training pixels at the
+same points and cameras instead of the radiance network (:mod:`bench.evidence_pixels`), and
+``--true-normals`` fits at the scene's normals instead of the run's.
 """
 
 from __future__ import annotations
@@ -58,7 +61,7 @@ def lit_test_points(run: Path, scene_dir: Path, points_per_view: int = 250, seed
     lit = fg & (img.max(-1) >= unlit_threshold(img, fg, 0.01))   # training gathers evidence on lit rays only
     rng = np.random.default_rng(seed)
     sampler = PixelSampler(test, "cpu")
-    cols: dict[str, list] = {k: [] for k in ("x", "n", "l", "metallic", "roughness", "n_gt")}
+    cols: dict[str, list] = {k: [] for k in ("x", "n", "l", "metallic", "roughness", "albedo", "n_gt")}
     for v in range(test.n_views):
         r = sampler.view_rays(v)
         x = r.origins.numpy() + r.directions.numpy() * pred["depth"][v].reshape(-1, 1).astype(np.float32)
@@ -69,6 +72,7 @@ def lit_test_points(run: Path, scene_dir: Path, points_per_view: int = 250, seed
         cols["l"].append(pred["light_dir"][v].reshape(-1, 3)[keep])
         cols["metallic"].append(gt["metallic"][v].reshape(-1)[keep])
         cols["roughness"].append(gt["roughness"][v].reshape(-1)[keep])
+        cols["albedo"].append(gt["albedo"][v].reshape(-1, 3)[keep])
         cols["n_gt"].append(gt["normal_world"][v].reshape(-1, 3)[keep])
     x, n, l = (torch.nn.functional.normalize(torch.tensor(np.concatenate(cols[k]), dtype=torch.float32), dim=-1)
                if k != "x" else torch.tensor(np.concatenate(cols[k]), dtype=torch.float32) for k in ("x", "n", "l"))
@@ -81,7 +85,9 @@ def lit_test_points(run: Path, scene_dir: Path, points_per_view: int = 250, seed
     return {"c": c[ok], "v": vdir[ok], "valid": valid[ok], "n": n[ok], "l": l[ok],
             "metallic_gt": np.concatenate(cols["metallic"]).astype(np.float32)[keep],
             "roughness_gt": np.concatenate(cols["roughness"]).astype(np.float32)[keep],
-            "x_world": x_np @ lin.T + wfn[:3, 3], "n_gt_world": np.concatenate(cols["n_gt"]).astype(np.float64)[keep],
+            "albedo_gt": np.concatenate(cols["albedo"]).astype(np.float32)[keep],
+            "x_norm": x_np, "world_from_norm": wfn, "x_world": x_np @ lin.T + wfn[:3, 3],
+            "n_gt_world": np.concatenate(cols["n_gt"]).astype(np.float64)[keep],
             "rotation": lin / np.cbrt(abs(np.linalg.det(lin)))}
 
 
@@ -112,19 +118,37 @@ def rows_of_points(pts: dict) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
+    import torch
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path)
     ap.add_argument("scene", type=Path)
     ap.add_argument("--points-per-view", type=int, default=250)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--pixels", action="store_true",
+                    help="read the training pixels instead of the radiance network (bench/evidence_pixels.py)")
+    ap.add_argument("--true-normals", action="store_true",
+                    help="fit at the scene's true normals instead of the run's (geometry's share of the error)")
+    ap.add_argument("--reflections", action="store_true",
+                    help="also fit with one interreflection bounce (bench/evidence_reflections.py)")
     ap.add_argument("--true-lights", action="store_true",
                     help="also score the points with the scene's true lights (bench/evidence_lights.py)")
     a = ap.parse_args(argv)
     pts = lit_test_points(a.run, a.scene, a.points_per_view, a.seed)
+    if a.true_normals:
+        n_true = torch.tensor(pts["n_gt_world"] @ pts["rotation"], dtype=torch.float32)
+        pts = {**pts, "n": torch.nn.functional.normalize(n_true, dim=-1)}
+    if a.pixels:
+        from bench.evidence_pixels import with_pixel_colours
+        pts = with_pixel_colours(pts, a.scene, pts["world_from_norm"])
     report = rows_of_points(pts)
     if a.true_lights:
         from bench.evidence_lights import true_light_rows
         report["true_lights"] = true_light_rows(pts, a.scene)
+    if a.reflections:
+        from bench.evidence_reflections import reflection_rows
+        from nepf_core.train import load_model
+        report["reflections"] = reflection_rows(pts, load_model(a.run, "cpu")[0])
     print(json.dumps(report, indent=1))
 
 
