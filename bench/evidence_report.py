@@ -129,8 +129,6 @@ def main(argv: list[str] | None = None) -> None:
                     help="read the training pixels instead of the radiance network (bench/evidence_pixels.py)")
     ap.add_argument("--true-normals", action="store_true",
                     help="fit at the scene's true normals instead of the run's (geometry's share of the error)")
-    ap.add_argument("--reflections", action="store_true",
-                    help="also fit with one interreflection bounce (bench/evidence_reflections.py)")
     ap.add_argument("--true-lights", action="store_true",
                     help="also score the points with the scene's true lights (bench/evidence_lights.py)")
     a = ap.parse_args(argv)
@@ -145,10 +143,6 @@ def main(argv: list[str] | None = None) -> None:
     if a.true_lights:
         from bench.evidence_lights import true_light_rows
         report["true_lights"] = true_light_rows(pts, a.scene)
-    if a.reflections:
-        from bench.evidence_reflections import reflection_rows
-        from nepf_core.train import load_model
-        report["reflections"] = reflection_rows(pts, load_model(a.run, "cpu")[0])
     print(json.dumps(report, indent=1))
 
 
