@@ -139,7 +139,7 @@ def true_points(run: Path, scene_dir: Path, points_per_view: int, views: int, se
     key = int(np.argmax([np.mean(li["intensity_rgb"]) for li in lights]))
     to_key = np.asarray(lights[key]["position_world"], dtype=np.float64)[None] - x_world
     l_key = torch.nn.functional.normalize(torch.as_tensor(to_key @ rot, dtype=torch.float32), dim=-1)
-    return {"n": n[ok], "v": vdir[ok], "valid": valid[ok], "l_key": l_key, "metal": mat["metallic"].reshape(-1).numpy() > 0.5,
+    return {"x": x[ok], "n": n[ok], "v": vdir[ok], "valid": valid[ok], "l_key": l_key, "metal": mat["metallic"].reshape(-1).numpy() > 0.5,
             "colours": {"pixels": c_pix[ok].double(), "radiance": c_rad[ok].double(), "model": c_model}}
 
 
