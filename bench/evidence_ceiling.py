@@ -87,10 +87,9 @@ def true_points(run: Path, scene_dir: Path, points_per_view: int, views: int, se
     """The true surface points of the module docstring with their cameras and three colours."""
     from bench.evidence_lights import scene_lights
     from bench.evidence_pixels import camera_of_direction, sample_pixels
-    from bench.shading_report import training_image
-    from nepf_core.rays import PixelSampler, unlit_threshold
+    from bench.evidence_report import lit_foreground
+    from nepf_core.rays import PixelSampler
     from nepf_core.reframe import load_held_out
-    from nepf_core.relight.metrics import FOREGROUND_ALPHA
     from nepf_core.render.material_evidence import MIN_VIEWS, views_of_points
     from nepf_core.train import load_model
 
@@ -98,9 +97,7 @@ def true_points(run: Path, scene_dir: Path, points_per_view: int, views: int, se
     wfn = np.asarray(state["extra"]["world_from_norm"], dtype=np.float64)
     test, train = load_held_out(scene_dir / "gt" / "dtu_test", wfn), load_held_out(scene_dir / "input" / "dtu", wfn)
     gt = np.load(scene_dir / "gt" / "arrays_test.npz")
-    fg = gt["alpha"] > FOREGROUND_ALPHA
-    img = training_image(gt)
-    lit = fg & (img.max(-1) >= unlit_threshold(img, fg, 0.01))
+    lit = lit_foreground(gt)
     lin = wfn[:3, :3]
     scale = float(np.cbrt(abs(np.linalg.det(lin))))
     rot = lin / scale                                        # u_norm = u_world @ rot

@@ -31,6 +31,19 @@ from pathlib import Path
 import numpy as np
 
 
+def lit_foreground(gt) -> np.ndarray:
+    """``[V, H, W]`` bool: the GT test views' foreground pixels the training would call lit (max
+    channel over the unlit threshold of :func:`nepf_core.rays.unlit_threshold`; the training
+    gathers evidence on lit rays only), from ``SCENE/gt/arrays_test.npz``."""
+    from bench.shading_report import training_image
+    from nepf_core.rays import unlit_threshold
+    from nepf_core.relight.metrics import FOREGROUND_ALPHA
+
+    fg = gt["alpha"] > FOREGROUND_ALPHA
+    img = training_image(gt)
+    return fg & (img.max(-1) >= unlit_threshold(img, fg, 0.01))
+
+
 def lit_test_points(run: Path, scene_dir: Path, points_per_view: int = 250, seed: int = 0) -> dict:
     """Up to ``points_per_view`` lit GT-foreground pixels of each test view, at the run's surface
     point, with the radiance network's colours toward the training cameras that face and see it
@@ -41,10 +54,8 @@ def lit_test_points(run: Path, scene_dir: Path, points_per_view: int = 250, seed
     ``rotation [3, 3]``, the normalised frame's axes in world (``u_norm = u_world @ rotation``)."""
     import torch
 
-    from bench.shading_report import training_image
-    from nepf_core.rays import PixelSampler, unlit_threshold
+    from nepf_core.rays import PixelSampler
     from nepf_core.reframe import load_held_out
-    from nepf_core.relight.metrics import FOREGROUND_ALPHA
     from nepf_core.render.material_evidence import MIN_VIEWS, VIEWS_PER_POINT, views_of_points
     from nepf_core.train import load_model
 
@@ -56,9 +67,7 @@ def lit_test_points(run: Path, scene_dir: Path, points_per_view: int = 250, seed
                            dtype=torch.float32)
     pred = np.load(run / "relight_eval" / "renders" / "arrays.npz")
     gt = np.load(scene_dir / "gt" / "arrays_test.npz")
-    fg = gt["alpha"] > FOREGROUND_ALPHA
-    img = training_image(gt)
-    lit = fg & (img.max(-1) >= unlit_threshold(img, fg, 0.01))   # training gathers evidence on lit rays only
+    lit = lit_foreground(gt)
     rng = np.random.default_rng(seed)
     sampler = PixelSampler(test, "cpu")
     cols: dict[str, list] = {k: [] for k in ("x", "n", "l", "metallic", "roughness", "albedo", "n_gt")}
