@@ -2,7 +2,7 @@
 (``python -m bench.evidence_ceiling RUN SCENE``): how far the images are from our shading model.
 
 At up to ``--points-per-view`` lit GT-foreground pixels of each test view it takes the **true**
-surface point (from the GT depth: ``x = o + d z / (d . f)``, ``f`` the camera's forward axis) and
+surface point (from the GT depth, :func:`bench.oracle.depth_to_world`) and
 the true normal, picks up to ``--views`` training cameras that face and see it (as the training's
 evidence does, :func:`~nepf_core.render.material_evidence.views_of_points`, occlusion by the run's
 SDF) and compares three colours toward those cameras:
@@ -86,9 +86,9 @@ def ratio_by_brightness(model: Tensor, c: Tensor, valid: Tensor) -> list[dict]:
 def true_points(run: Path, scene_dir: Path, points_per_view: int, views: int, seed: int) -> dict:
     """The true surface points of the module docstring with their cameras and three colours."""
     from bench.evidence_lights import scene_lights
-    from bench.evidence_pixels import camera_of_direction, sample_pixels
+    from bench.evidence_pixels import pixels_toward
     from bench.evidence_report import lit_foreground
-    from nepf_core.rays import PixelSampler
+    from bench.oracle import depth_to_world, world_cameras
     from nepf_core.reframe import load_held_out
     from nepf_core.render.material_evidence import MIN_VIEWS, views_of_points
     from nepf_core.train import load_model
@@ -99,29 +99,25 @@ def true_points(run: Path, scene_dir: Path, points_per_view: int, views: int, se
     gt = np.load(scene_dir / "gt" / "arrays_test.npz")
     lit = lit_foreground(gt)
     lin = wfn[:3, :3]
-    scale = float(np.cbrt(abs(np.linalg.det(lin))))
-    rot = lin / scale                                        # u_norm = u_world @ rot
-    rng, sampler = np.random.default_rng(seed), PixelSampler(test, "cpu")
+    rot = lin / test.world_scale()                           # u_norm = u_world @ rot
+    norm_from_world = np.linalg.inv(wfn)
+    rng, c2w_world = np.random.default_rng(seed), world_cameras(test)
     cols: dict[str, list] = {k: [] for k in ("x", "n", "albedo", "roughness", "metallic")}
     for v in range(test.n_views):
-        r = sampler.view_rays(v)
-        d = torch.nn.functional.normalize(r.directions.double(), dim=-1).numpy()
-        fwd = np.asarray(test.c2w, dtype=np.float64)[v, :3, 2]
-        t = gt["depth_z"][v].reshape(-1).astype(np.float64) / scale / (d @ fwd)
+        x_world = depth_to_world(gt["depth_z"][v].astype(np.float64), test.intrinsics[v].astype(np.float64),
+                                 c2w_world[v]).reshape(-1, 3)
         keep = np.nonzero(lit[v].reshape(-1))[0]
         keep = rng.choice(keep, min(points_per_view, len(keep)), replace=False)
-        cols["x"].append(r.origins.double().numpy()[keep] + d[keep] * t[keep, None])
+        cols["x"].append(x_world[keep] @ norm_from_world[:3, :3].T + norm_from_world[:3, 3])
         cols["n"].append(gt["normal_world"][v].reshape(-1, 3)[keep] @ rot)
         for k in ("albedo", "roughness", "metallic"):
-            cols[k].append(gt[k][v].reshape(len(t), -1)[keep])
+            cols[k].append(gt[k][v].reshape(len(x_world), -1)[keep])
     x = torch.tensor(np.concatenate(cols["x"]), dtype=torch.float32)
     n = torch.nn.functional.normalize(torch.tensor(np.concatenate(cols["n"]), dtype=torch.float32), dim=-1)
-    c2w = torch.as_tensor(np.asarray(train.c2w), dtype=torch.float32)
+    cams = torch.as_tensor(np.asarray(train.c2w)[:, :3, 3], dtype=torch.float32)
     with torch.no_grad():
-        c_rad, vdir, valid = views_of_points(model, x, n, c2w[:, :3, 3], views, torch.Generator().manual_seed(seed))
-    c_pix, inside = sample_pixels(torch.as_tensor(np.asarray(train.images), dtype=torch.float32),
-                                  torch.as_tensor(np.asarray(train.intrinsics), dtype=torch.float32), c2w, x,
-                                  camera_of_direction(x, vdir, c2w[:, :3, 3]))
+        c_rad, vdir, valid = views_of_points(model, x, n, cams, views, torch.Generator().manual_seed(seed))
+    c_pix, inside = pixels_toward(train, x, vdir)
     valid = valid & inside
     ok = valid.sum(-1) >= MIN_VIEWS
     keep = ok.numpy()
@@ -136,7 +132,7 @@ def true_points(run: Path, scene_dir: Path, points_per_view: int, views: int, se
     key = int(np.argmax([np.mean(li["intensity_rgb"]) for li in lights]))
     to_key = np.asarray(lights[key]["position_world"], dtype=np.float64)[None] - x_world
     l_key = torch.nn.functional.normalize(torch.as_tensor(to_key @ rot, dtype=torch.float32), dim=-1)
-    return {"x": x[ok], "n": n[ok], "v": vdir[ok], "valid": valid[ok], "l_key": l_key, "metal": mat["metallic"].reshape(-1).numpy() > 0.5,
+    return {"n": n[ok], "v": vdir[ok], "valid": valid[ok], "l_key": l_key, "metal": mat["metallic"].reshape(-1).numpy() > 0.5,
             "colours": {"pixels": c_pix[ok].double(), "radiance": c_rad[ok].double(), "model": c_model}}
 
 

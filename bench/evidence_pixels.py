@@ -49,16 +49,21 @@ def sample_pixels(images: Tensor, intrinsics: Tensor, c2w: Tensor, x: Tensor, ca
     return out, inside
 
 
-def with_pixel_colours(pts: dict, scene_dir: Path, wfn: np.ndarray) -> dict:
+def pixels_toward(train, x: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+    """``(c [P, K, 3], inside [P, K])``: :func:`sample_pixels` of the training ``Scene`` ``train``
+    (normalised frame) at ``x [P, 3]``, in the camera behind each direction ``v [P, K, 3]``."""
+    c2w = torch.as_tensor(np.asarray(train.c2w), dtype=torch.float32)
+    cam = camera_of_direction(x, v, c2w[:, :3, 3])
+    return sample_pixels(torch.as_tensor(np.asarray(train.images), dtype=torch.float32),
+                         torch.as_tensor(np.asarray(train.intrinsics), dtype=torch.float32), c2w, x, cam)
+
+
+def with_pixel_colours(pts: dict, scene_dir: Path) -> dict:
     """:func:`bench.evidence_report.lit_test_points`'s ``pts`` with ``c`` replaced by the
     training pixels at the same points and cameras (a view whose projection leaves the image is
     no longer valid)."""
     from nepf_core.reframe import load_held_out
 
-    train = load_held_out(scene_dir / "input" / "dtu", wfn)
-    c2w = torch.as_tensor(np.asarray(train.c2w), dtype=torch.float32)
-    x = torch.as_tensor(pts["x_norm"], dtype=torch.float32)
-    cam = camera_of_direction(x, pts["v"], c2w[:, :3, 3])
-    c, inside = sample_pixels(torch.as_tensor(np.asarray(train.images), dtype=torch.float32),
-                              torch.as_tensor(np.asarray(train.intrinsics), dtype=torch.float32), c2w, x, cam)
+    train = load_held_out(scene_dir / "input" / "dtu", pts["world_from_norm"])
+    c, inside = pixels_toward(train, torch.as_tensor(pts["x_norm"], dtype=torch.float32), pts["v"])
     return {**pts, "c": c, "valid": pts["valid"] & inside}

@@ -70,7 +70,7 @@ def lit_test_points(run: Path, scene_dir: Path, points_per_view: int = 250, seed
     lit = lit_foreground(gt)
     rng = np.random.default_rng(seed)
     sampler = PixelSampler(test, "cpu")
-    cols: dict[str, list] = {k: [] for k in ("x", "n", "l", "metallic", "roughness", "albedo", "n_gt")}
+    cols: dict[str, list] = {k: [] for k in ("x", "n", "l", "metallic", "roughness", "n_gt")}
     for v in range(test.n_views):
         r = sampler.view_rays(v)
         x = r.origins.numpy() + r.directions.numpy() * pred["depth"][v].reshape(-1, 1).astype(np.float32)
@@ -81,7 +81,6 @@ def lit_test_points(run: Path, scene_dir: Path, points_per_view: int = 250, seed
         cols["l"].append(pred["light_dir"][v].reshape(-1, 3)[keep])
         cols["metallic"].append(gt["metallic"][v].reshape(-1)[keep])
         cols["roughness"].append(gt["roughness"][v].reshape(-1)[keep])
-        cols["albedo"].append(gt["albedo"][v].reshape(-1, 3)[keep])
         cols["n_gt"].append(gt["normal_world"][v].reshape(-1, 3)[keep])
     x, n, l = (torch.nn.functional.normalize(torch.tensor(np.concatenate(cols[k]), dtype=torch.float32), dim=-1)
                if k != "x" else torch.tensor(np.concatenate(cols[k]), dtype=torch.float32) for k in ("x", "n", "l"))
@@ -94,7 +93,6 @@ def lit_test_points(run: Path, scene_dir: Path, points_per_view: int = 250, seed
     return {"c": c[ok], "v": vdir[ok], "valid": valid[ok], "n": n[ok], "l": l[ok],
             "metallic_gt": np.concatenate(cols["metallic"]).astype(np.float32)[keep],
             "roughness_gt": np.concatenate(cols["roughness"]).astype(np.float32)[keep],
-            "albedo_gt": np.concatenate(cols["albedo"]).astype(np.float32)[keep],
             "x_norm": x_np, "world_from_norm": wfn, "x_world": x_np @ lin.T + wfn[:3, 3],
             "n_gt_world": np.concatenate(cols["n_gt"]).astype(np.float64)[keep],
             "rotation": lin / np.cbrt(abs(np.linalg.det(lin)))}
@@ -147,7 +145,7 @@ def main(argv: list[str] | None = None) -> None:
         pts = {**pts, "n": torch.nn.functional.normalize(n_true, dim=-1)}
     if a.pixels:
         from bench.evidence_pixels import with_pixel_colours
-        pts = with_pixel_colours(pts, a.scene, pts["world_from_norm"])
+        pts = with_pixel_colours(pts, a.scene)
     report = rows_of_points(pts)
     if a.true_lights:
         from bench.evidence_lights import true_light_rows
