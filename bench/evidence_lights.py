@@ -24,11 +24,16 @@ module scores the same points with the true light directions from ``SCENE/gt/lig
 and splits the metals' call rate by the **fill share**, the other lights' part of the point's
 irradiance ``E_j = I_j max(n . u_j, 0) / d_j^2`` (true normals, no shadows). The true directions
 make "all lights" an upper bound for any searched second light (bench/RESULTS.md v46).
+
+``--searched-fill`` asks what a run could get without knowing the fill: the second light's
+direction searched per hypothesis over :data:`FILL_CANDIDATES` directions spread over the sphere
+(:func:`fill_candidates`), with the key the learned light or the true one (:func:`searched_fill_rows`).
 """
 
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -39,6 +44,8 @@ FILL_SHARE_BINS = ((0.0, 0.1), (0.1, 0.3), (0.3, 1.0001))
 """The fill-share bins the metals' call rate is split by."""
 FIT_ROUNDS = 12
 """Rounds of :func:`fit_two_lights`'s alternating minimisation."""
+FILL_CANDIDATES = 32
+"""Directions the searched second light is chosen from (:func:`fill_candidates`)."""
 
 
 def _nnls_two(g11: Tensor, g22: Tensor, g12: Tensor, y1: Tensor, y2: Tensor) -> tuple[Tensor, Tensor]:
@@ -182,4 +189,55 @@ def true_light_rows(pts: dict, scene_dir: Path) -> dict:
                                ("all_lights", (A2, B2))):
             ev2 = evidence_from_residuals(fit_two_lights(c, A1, B1, a2, b2, valid))
             rows[name] = _call_rates(ev2.metallic.numpy() > 0.5, metal_gt, fill)
+    return rows
+
+
+def fill_candidates(count: int = FILL_CANDIDATES) -> Tensor:
+    """``[count, 3]`` unit directions spread evenly over the sphere (the Fibonacci lattice:
+    ``z_i = 1 - (2 i + 1) / count``, azimuth ``i`` times the golden angle ``pi (3 - sqrt 5)``), the
+    searched second light's candidates; about ``sqrt(4 pi / count)`` rad apart (36 deg at 32)."""
+    i = torch.arange(count, dtype=torch.float64)
+    z = 1.0 - (2.0 * i + 1.0) / count
+    phi = i * math.pi * (3.0 - math.sqrt(5.0))
+    s = (1.0 - z * z).sqrt()
+    return torch.stack([s * phi.cos(), s * phi.sin(), z], -1).float()
+
+
+def best_fill_residuals(c: Tensor, n: Tensor, key: Tensor, v: Tensor, valid: Tensor,
+                        candidates: Tensor) -> Tensor:
+    """``e [P, H]``: per hypothesis the best two-light residual (:func:`fit_two_lights`) over the
+    second light's ``candidates [M, 3]``, the key ``key [P, 3]`` fixed; never above the one-light
+    fit at the key (the second light's beta may be 0)."""
+    from nepf_core.render.material_evidence import hypothesis_basis
+
+    A1, B1 = hypothesis_basis(n, key, v)
+    best = None
+    for u in candidates:
+        A2, B2 = hypothesis_basis(n, u.expand_as(key), v)
+        e = fit_two_lights(c, A1, B1, A2, B2, valid)
+        best = e if best is None else torch.minimum(best, e)
+    return best
+
+
+def searched_fill_rows(pts: dict, scene_dir: Path, candidates: int = FILL_CANDIDATES) -> dict:
+    """The call rates with the fill searched (module docstring): for the key at the learned light
+    and at the true key, the one-light fit through the two-light solver (second basis zero, no
+    tilts) and the best of ``candidates`` second lights, split by the true fill share."""
+    from nepf_core.render.material_evidence import evidence_from_residuals
+
+    lights = scene_lights(scene_dir)
+    u_world, irr = light_geometry(pts["x_world"], pts["n_gt_world"], lights)
+    rot = pts["rotation"]
+    key = int(np.argmax([np.mean(li["intensity_rgb"]) for li in lights]))
+    l_key = torch.nn.functional.normalize(torch.tensor(u_world[key] @ rot, dtype=torch.float32), dim=-1)
+    fill = None if len(lights) == 1 else (irr.sum(0) - irr[key]) / np.maximum(irr.sum(0), 1e-12)
+    c, n, v, valid = pts["c"], pts["n"], pts["v"], pts["valid"]
+    metal_gt = pts["metallic_gt"] > 0.5
+    cands = fill_candidates(candidates)
+    rows = {}
+    for name, l in (("learned_key", pts["l"]), ("true_key", l_key)):
+        zero = torch.zeros(1, 3)
+        for fill_name, cand in (("one_light", zero), ("searched_fill", cands)):
+            ev = evidence_from_residuals(best_fill_residuals(c, n, l, v, valid, cand))
+            rows[f"{name}_{fill_name}"] = _call_rates(ev.metallic.numpy() > 0.5, metal_gt, fill)
     return rows

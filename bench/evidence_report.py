@@ -138,6 +138,8 @@ def main(argv: list[str] | None = None) -> None:
                     help="fit at the scene's true normals instead of the run's (geometry's share of the error)")
     ap.add_argument("--true-lights", action="store_true",
                     help="also score the points with the scene's true lights (bench/evidence_lights.py)")
+    ap.add_argument("--searched-fill", action="store_true",
+                    help="also score with a second light searched per hypothesis (bench/evidence_lights.py)")
     a = ap.parse_args(argv)
     pts = lit_test_points(a.run, a.scene, a.points_per_view, a.seed)
     if a.true_normals:
@@ -150,6 +152,9 @@ def main(argv: list[str] | None = None) -> None:
     if a.true_lights:
         from bench.evidence_lights import true_light_rows
         report["true_lights"] = true_light_rows(pts, a.scene)
+    if a.searched_fill:
+        from bench.evidence_lights import searched_fill_rows
+        report["searched_fill"] = searched_fill_rows(pts, a.scene)
     print(json.dumps(report, indent=1))
 
 

@@ -9,7 +9,8 @@ import pytest
 import torch
 from scipy.optimize import nnls
 
-from bench.evidence_lights import _nnls_two, fit_two_lights, light_geometry, scene_lights
+from bench.evidence_lights import (_nnls_two, best_fill_residuals, fill_candidates, fit_two_lights, light_geometry,
+                                   scene_lights)
 from nepf_core import bsdf
 from nepf_core.render import material_evidence as me
 
@@ -88,6 +89,40 @@ def test_a_fill_lit_metal_is_a_metal_to_the_two_light_fit_and_not_to_the_key_alo
     assert float((one.metallic > 0.5).float().mean()) < float((two.metallic > 0.5).float().mean()) - 0.1
     dielectric = _two_light_colours(n, v, key, fill, RED, 0.3, 0.0, 1.8)
     ev = me.evidence_from_residuals(fit_two_lights(dielectric, A1, B1, A2, B2, valid))
+    assert float((ev.metallic > 0.5).float().mean()) < 0.03
+
+
+def test_fill_candidates_cover_the_sphere_evenly():
+    """Unit vectors whose mean is ~0, and every direction on a fine grid within the lattice's
+    spacing (about sqrt(4 pi / M) rad) of its nearest candidate."""
+    c = fill_candidates(32).double()
+    assert torch.allclose(c.norm(dim=-1), torch.ones(32, dtype=torch.float64), atol=1e-6)
+    assert float(c.mean(0).norm()) < 0.02
+    probe = _unit(torch.randn(4000, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64))
+    worst = math.degrees(math.acos(float((probe @ c.T).max(1).values.min())))
+    assert worst < math.degrees(math.sqrt(4 * math.pi / 32))
+
+
+def test_a_searched_fill_finds_a_fill_lit_metal_and_keeps_a_dielectric():
+    """The fill put on a candidate direction: the searched fit is the true two-light fit there
+    (residual at the floor on the generating hypothesis), it calls the fill-lit gold metal where
+    the key alone does not, it is never above the one-light fit, and the red dielectric stays one."""
+    n, v, valid, key, _ = _scene(256, 3)
+    cands = fill_candidates(32)
+    fill = cands[int(((cands @ torch.tensor([-0.7, 0.2, 0.5])).argmax()))].expand_as(n)
+    G = len(me.ROUGHNESS_GRID)
+    metal = _two_light_colours(n, v, key, fill, GOLD, 0.3, 1.0, 1.8)
+    e = best_fill_residuals(metal, n, key, v, valid, cands)
+    lit_by_fill = (n * fill).sum(-1) > 0.3
+    h = G + me.ROUGHNESS_GRID.index(0.3)
+    assert float(e[lit_by_fill, h].max()) < me.RESIDUAL_FLOOR * 1.01
+    A1, B1 = me.hypothesis_basis(n, key, v)
+    e_one = me.fit_hypotheses(metal, A1, B1, valid)
+    assert bool((e <= e_one * (1 + 1e-4) + 1e-6).all())
+    called = lambda res: float((me.evidence_from_residuals(res).metallic[lit_by_fill] > 0.5).float().mean())
+    assert called(e) > 0.9 and called(e) > called(e_one) + 0.1
+    dielectric = _two_light_colours(n, v, key, fill, RED, 0.3, 0.0, 1.8)
+    ev = me.evidence_from_residuals(best_fill_residuals(dielectric, n, key, v, valid, cands))
     assert float((ev.metallic > 0.5).float().mean()) < 0.03
 
 
