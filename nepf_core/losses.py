@@ -278,36 +278,14 @@ def loss_background(b: LossBatch) -> Tensor:
     return l1_masked(b.r_enc, b.gt_all, (1.0 - b.fg_all) * (b.outside_q if b.outside_q is not None else 1.0))
 
 
-SRGB_SLOPE_AT_WHITE = 1.055 / 2.4
-"""d srgb / d x at x = 1 (the OETF ``1.055 x^(1/2.4) - 0.055``)."""
-SATURATED_SRGB = 0.99
-"""A target channel at or above this (display space) is saturated: a prediction above 1 is right there."""
-
-
-def pbr_encoding(pred: Tensor, target_enc: Tensor) -> Tensor:
-    """``srgb(pred) + k relu(pred - 1)`` where the target channel is not saturated, ``k`` the sRGB
-    slope at white: a PBR colour past white toward an unsaturated pixel costs its linear excess,
-    so a lobe cannot hide its energy in clipped sub-pixel spikes (the clamp of ``srgb`` makes that
-    free); at saturated targets the clamp stays (the pixel's true value is >= 1)."""
-    over = (pred - 1.0).clamp_min(0.0) * (target_enc < SATURATED_SRGB)
-    return linear_to_srgb(pred) + SRGB_SLOPE_AT_WHITE * over
-
-
 def loss_surface(b: LossBatch) -> Tensor:
     wt = b.surf_rays * (1.0 - b.out.w_max.detach())
-    r_sdf = b.r_sdf.detach()
-    err = (pbr_encoding(b.out.rgb_surf, r_sdf) - r_sdf).abs().mean(-1)
+    err = (linear_to_srgb(b.out.rgb_surf) - b.r_sdf.detach()).abs().mean(-1)
     return (err * wt).sum() / b.surf_rays.sum().clamp_min(1.0)
 
 
 def loss_volume(b: LossBatch) -> Tensor:
-    vol = b.out.rgb_vol
-    if vol.shape[0] == b.vol_enc.shape[0]:
-        vol_enc = pbr_encoding(vol, b.gt_all)
-    else:   # background-only rays appended: their colour is the background's, already encoded
-        n = vol.shape[0]
-        vol_enc = torch.cat([pbr_encoding(vol, b.gt_all[:n]), b.vol_enc[n:]])
-    return l1_masked(vol_enc, b.gt_all, b.colour_w)
+    return l1_masked(b.vol_enc, b.gt_all, b.colour_w)
 
 
 def loss_eikonal(b: LossBatch) -> Tensor:
