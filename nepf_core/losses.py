@@ -90,9 +90,6 @@ class LossConfig:
     """The smoothness prior of ``w_albedo_smooth`` for roughness and metallic:
     ``mean (|r(x*) - r(x* + eps)| + |m(x*) - m(x* + eps)|)``. With a smoothness prior on the albedo
     alone, a texture is cheaper to carry in metallic (a ``(1 - m)`` dimmer) than in the albedo."""
-    w_key_light: float = 0.0
-    """``L_key = w mean (1 - l(x*) . u)`` over lit rays whose normal faces ``u``, the key light
-    fitted to the lit pixels (``nepf_core/train/key_light.py``); off in paper."""
     w_material_range: float = 0.0
     """Keep the material network's raw outputs (albedo, roughness, metallic logits ``z``) within
     ``|z| <= material_logit_max``: ``mean relu(|z| - z_max)`` over surface rays. A sigmoid past
@@ -304,17 +301,6 @@ def loss_light(b: LossBatch) -> Tensor:
     return light_variance_loss(s.x[m], s.normal[m], s.light_dir[m], s.intensity[m], c.lambda3, c.lambda4, c.lambda5)
 
 
-def loss_key_light(b: LossBatch) -> Tensor:
-    """``mean (1 - l(x*) . d(x*))`` over lit rays facing the key (``b.out.key_light = (d [R, 3],
-    log_falloff [R])``, :mod:`nepf_core.train.key_light`)."""
-    if b.out.key_light is None:
-        return b.zero
-    d, _ = b.out.key_light
-    s = b.out.surface
-    faces = b.lit & ((s.normal.detach() * d).sum(-1) > 0.0)
-    return mean_where(1.0 - (s.light_dir * d).sum(-1), faces)
-
-
 def loss_mask(b: LossBatch) -> Tensor:
     if not b.use_mask or b.rays.mask is None:
         return b.zero
@@ -399,7 +385,6 @@ LOSS_TERMS: tuple[LossTerm, ...] = (
     LossTerm("loss_eik", "w_eikonal", loss_eikonal),
     LossTerm("loss_hess", "w_hessian", loss_hessian),
     LossTerm("loss_light", "w_light", loss_light),
-    LossTerm("loss_key_light", "w_key_light", loss_key_light),
     LossTerm("loss_mask", "w_mask", loss_mask),
     LossTerm("loss_albedo_smooth", "w_albedo_smooth", loss_albedo_smooth),
     LossTerm("loss_albedo_flat", "w_albedo_flat", loss_albedo_flat),

@@ -139,9 +139,6 @@ class RenderOutput:
     (:class:`nepf_core.render.material_evidence.EvidenceBatch`); set by the training step when
     ``loss.w_material_evidence > 0`` (it knows the cameras), else None."""
     metal_share: Tensor | None = None
-    key_light: Tensor | None = None
-    """``[R, 3]`` each ray's surface point's direction toward the key light fitted to the pixels
-    (train/key_light.py), for ``loss.w_key_light``."""
     """``[R]`` in ``[0, 1)``: how firmly the evidence recorded near each ray's surface point says
     metal (:class:`nepf_core.train.metal_record.MetalRecord`), which lifts the unseen-lobe prior
     there; set by the training step beside ``material_evidence``, else None (the prior in full)."""

@@ -20,7 +20,6 @@ groups (grid tables at ``train.lr_grid``, the rest at ``train.lr``);
 from __future__ import annotations
 
 import dataclasses
-import json
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Sequence
@@ -45,7 +44,6 @@ from nepf_core.train.decisions import Decision
 from nepf_core.train.clock import TrainClock
 from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
 from nepf_core.train.hooks import TrainHooks
-from nepf_core.train.key_light import KEY_LIGHT_UNTIL, KeyLightEstimate
 from nepf_core.train.metal_record import MetalRecord
 from nepf_core.train.metrics_log import MetricsLog, plot_error_vs_time, write_json_atomic
 from nepf_core.train.result import FitError, FitResult
@@ -129,7 +127,6 @@ class TrainingRun:
         # where the metal evidence said metal, the unseen-lobe prior is lifted (train/metal_record.py)
         self.metal_record = (MetalRecord(dev) if cfg.loss.w_material_evidence > 0 and cfg.loss.w_metallic_unseen > 0
                              else None)
-        self.key_light = KeyLightEstimate(dev) if cfg.loss.w_key_light > 0 else None
         self.unlit_thr, decision = unlit_pixels(scene, cfg.render.unlit_albedo_stopgrad, tc.unlit_rel_threshold)
         self.adaptivity.log_decision(decision)
         self.adaptivity.on_model(ModelContext(self.model, scene))
@@ -258,21 +255,6 @@ class TrainingRun:
                 ev, x = out.material_evidence.evidence, out.surface.x
                 self.metal_record.update(x[out.material_evidence.rays], ev.metallic, ev.metallic_confidence)
                 out.metal_share = self.metal_record.metal_share(x)
-        if self.key_light is not None:
-            fg = foreground(out.weight_sum) if rays.mask is None else foreground(out.weight_sum) & (rays.mask > 0.5)
-            s = out.surface
-            self.key_light.add(s.x[fg], s.normal[fg], rays.rgb[fg].clamp(max=1.0).mean(-1))
-            if self.key_light.maybe_refit(self.step):   # trial diagnostics: the fit in the normalised frame
-                k = self.key_light.last_fit
-                with open(self.dir / "key_light.jsonl", "a") as f:
-                    f.write(json.dumps({"step": self.step,
-                                        "position": None if k.position is None else k.position.tolist(),
-                                        "direction": None if k.direction is None else k.direction.tolist(),
-                                        "explained": k.explained, "used": self.key_light.key is not None,
-                                        "world_from_norm": np.asarray(self.scene.world_from_norm).tolist()}) + "\n")
-            k = self.key_light.key
-            early = self.progress() < KEY_LIGHT_UNTIL
-            out.key_light = None if k is None or not early else (k.toward(s.x.detach()), k.log_falloff(s.x.detach()))
         points = None if self.surface_points is None else (lambda: self.surface_points.loss(model, self.gen))
         losses = compute_losses(out, rays, loss_cfg, use_mask=rs.use_mask_loss, specular=rs.specular,
                                 background=rs.background, background_rays=background_rays, surface_points=points)
