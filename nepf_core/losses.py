@@ -280,10 +280,7 @@ def loss_background(b: LossBatch) -> Tensor:
 
 def loss_surface(b: LossBatch) -> Tensor:
     wt = b.surf_rays * (1.0 - b.out.w_max.detach())
-    target = b.r_sdf.detach()
-    saturated = b.gt[: target.shape[0]] >= 0.99      # a highlight the radiance may blur: the pixel itself
-    target = torch.where(saturated, b.gt[: target.shape[0]], target)
-    err = (linear_to_srgb(b.out.rgb_surf) - target).abs().mean(-1)
+    err = (linear_to_srgb(b.out.rgb_surf) - b.r_sdf.detach()).abs().mean(-1)
     return (err * wt).sum() / b.surf_rays.sum().clamp_min(1.0)
 
 
