@@ -138,6 +138,7 @@ def true_points(run: Path, scene_dir: Path, points_per_view: int, views: int, se
 
 def ceiling_rows(pts: dict) -> dict:
     """The report of the module docstring for :func:`true_points`'s ``pts``."""
+    from bench.evidence_lights import call_rates
     from nepf_core.render.material_evidence import material_evidence
 
     metal, cs, valid = pts["metal"], pts["colours"], pts["valid"]
@@ -153,9 +154,7 @@ def ceiling_rows(pts: dict) -> dict:
         out[kind] = row
     for name, c in cs.items():
         ev = material_evidence(c.float(), pts["n"], pts["l_key"], pts["v"], valid, search_light=False)
-        called = ev.metallic.numpy() > 0.5
-        out[f"evidence_on_{name}"] = {"metals_called_metal": float(called[metal].mean()) if metal.any() else None,
-                                      "dielectrics_called_dielectric": float((~called[~metal]).mean()) if (~metal).any() else None}
+        out[f"evidence_on_{name}"] = call_rates(ev.metallic.numpy() > 0.5, metal, None)
     return out
 
 

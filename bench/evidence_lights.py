@@ -152,7 +152,7 @@ def light_geometry(x_world: np.ndarray, n_world: np.ndarray, lights: list[dict])
     return np.stack(us), np.stack(es)
 
 
-def _call_rates(metal_called: np.ndarray, metal_gt: np.ndarray, fill_share: np.ndarray | None) -> dict:
+def call_rates(metal_called: np.ndarray, metal_gt: np.ndarray, fill_share: np.ndarray | None) -> dict:
     row = {"metals_called_metal": float(metal_called[metal_gt].mean()) if metal_gt.any() else None,
            "dielectrics_called_dielectric": float((~metal_called[~metal_gt]).mean()) if (~metal_gt).any() else None}
     if fill_share is not None:
@@ -163,32 +163,42 @@ def _call_rates(metal_called: np.ndarray, metal_gt: np.ndarray, fill_share: np.n
     return row
 
 
+def _true_light_directions(pts: dict, scene_dir: Path) -> tuple[list[Tensor], np.ndarray | None]:
+    """``([P, 3] per light, key first, unit, normalised frame), fill share [P] or None``: the
+    directions from :func:`bench.evidence_report.lit_test_points`'s points toward the scene's true
+    lights, and the other lights' share of each point's irradiance (one light: None)."""
+    lights = scene_lights(scene_dir)
+    u_world, irr = light_geometry(pts["x_world"], pts["n_gt_world"], lights)
+    key = int(np.argmax([np.mean(li["intensity_rgb"]) for li in lights]))
+    order = [key] + [j for j in range(len(lights)) if j != key]
+    rot = pts["rotation"]                                   # world directions -> normalised frame: R^T u
+    directions = [torch.nn.functional.normalize(torch.tensor(u_world[j] @ rot, dtype=torch.float32), dim=-1)
+                  for j in order]
+    fill = None if len(lights) == 1 else (irr.sum(0) - irr[key]) / np.maximum(irr.sum(0), 1e-12)
+    return directions, fill
+
+
 def true_light_rows(pts: dict, scene_dir: Path) -> dict:
     """The rows of the module docstring for the points of
     :func:`bench.evidence_report.lit_test_points` (``pts``)."""
     from nepf_core.render.material_evidence import (evidence_from_residuals, hypothesis_basis,
                                                     material_evidence)
 
-    lights = scene_lights(scene_dir)
-    u_world, irr = light_geometry(pts["x_world"], pts["n_gt_world"], lights)
-    rot = pts["rotation"]                                   # world directions -> normalised frame: R^T u
-    to_norm = lambda u: torch.nn.functional.normalize(torch.tensor(u @ rot, dtype=torch.float32), dim=-1)
-    key = int(np.argmax([np.mean(li["intensity_rgb"]) for li in lights]))
+    directions, fill = _true_light_directions(pts, scene_dir)
+    l_key = directions[0]
     c, n, v, valid = pts["c"], pts["n"], pts["v"], pts["valid"]
     metal_gt = pts["metallic_gt"] > 0.5
-    fill = None if len(lights) == 1 else (irr.sum(0) - irr[key]) / np.maximum(irr.sum(0), 1e-12)
-    l_key = to_norm(u_world[key])
     rows = {}
     for name, l in (("learned_light", pts["l"]), ("key_light", l_key)):
         ev = material_evidence(c, n, l, v, valid)
-        rows[name] = _call_rates(ev.metallic.numpy() > 0.5, metal_gt, fill)
-    if len(lights) == 2:
+        rows[name] = call_rates(ev.metallic.numpy() > 0.5, metal_gt, fill)
+    if len(directions) == 2:
         A1, B1 = hypothesis_basis(n, l_key, v)
-        A2, B2 = hypothesis_basis(n, to_norm(u_world[1 - key]), v)
+        A2, B2 = hypothesis_basis(n, directions[1], v)
         for name, (a2, b2) in (("key_light_two_light_solver", (torch.zeros_like(A2), torch.zeros_like(B2))),
                                ("all_lights", (A2, B2))):
             ev2 = evidence_from_residuals(fit_two_lights(c, A1, B1, a2, b2, valid))
-            rows[name] = _call_rates(ev2.metallic.numpy() > 0.5, metal_gt, fill)
+            rows[name] = call_rates(ev2.metallic.numpy() > 0.5, metal_gt, fill)
     return rows
 
 
@@ -225,19 +235,13 @@ def searched_fill_rows(pts: dict, scene_dir: Path, candidates: int = FILL_CANDID
     tilts) and the best of ``candidates`` second lights, split by the true fill share."""
     from nepf_core.render.material_evidence import evidence_from_residuals
 
-    lights = scene_lights(scene_dir)
-    u_world, irr = light_geometry(pts["x_world"], pts["n_gt_world"], lights)
-    rot = pts["rotation"]
-    key = int(np.argmax([np.mean(li["intensity_rgb"]) for li in lights]))
-    l_key = torch.nn.functional.normalize(torch.tensor(u_world[key] @ rot, dtype=torch.float32), dim=-1)
-    fill = None if len(lights) == 1 else (irr.sum(0) - irr[key]) / np.maximum(irr.sum(0), 1e-12)
+    directions, fill = _true_light_directions(pts, scene_dir)
     c, n, v, valid = pts["c"], pts["n"], pts["v"], pts["valid"]
     metal_gt = pts["metallic_gt"] > 0.5
-    cands = fill_candidates(candidates)
+    no_second_light = torch.zeros(1, 3)            # a zero direction: a zero basis, the one-light fit
     rows = {}
-    for name, l in (("learned_key", pts["l"]), ("true_key", l_key)):
-        zero = torch.zeros(1, 3)
-        for fill_name, cand in (("one_light", zero), ("searched_fill", cands)):
+    for name, l in (("learned_key", pts["l"]), ("true_key", directions[0])):
+        for fill_name, cand in (("one_light", no_second_light), ("searched_fill", fill_candidates(candidates))):
             ev = evidence_from_residuals(best_fill_residuals(c, n, l, v, valid, cand))
-            rows[f"{name}_{fill_name}"] = _call_rates(ev.metallic.numpy() > 0.5, metal_gt, fill)
+            rows[f"{name}_{fill_name}"] = call_rates(ev.metallic.numpy() > 0.5, metal_gt, fill)
     return rows
