@@ -88,6 +88,12 @@ def test_ray_errors_by_hand():
     assert err.tolist() == pytest.approx([0.5 + 0.25, 0.25], abs=1e-4)
 
 
+def test_a_non_finite_render_scores_the_start_error():
+    rgb_r = torch.tensor([[float("nan"), 0.0, 0.0], [0.0, 0.0, 0.0]])
+    err = ray_errors(rgb_r, torch.zeros(2, 3), None, torch.tensor([float("nan"), 1.0]))
+    assert err.tolist() == [START_ERROR, 0.0]
+
+
 def test_fraction_out_of_range_is_refused():
     with pytest.raises(ValueError, match="fraction"):
         PixelImportance(1, 4, 4, "cpu", 1.5)

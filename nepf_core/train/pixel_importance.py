@@ -107,9 +107,9 @@ class PixelImportance:
 
 def ray_errors(rgb_r: Tensor, target: Tensor, mask: Tensor | None, weight_sum: Tensor) -> Tensor:
     """``[R]``: the per-ray error of the module docstring (``rgb_r, target [R, 3]`` linear,
-    ``mask [R]`` 0/1 or None, ``weight_sum [R]``), detached."""
+    ``mask [R]`` 0/1 or None, ``weight_sum [R]``), detached. A non-finite render (a step the loop
+    skips) scores :data:`START_ERROR`, so the map never holds a NaN (which would void every draw)."""
     with torch.no_grad():
-        colour = (linear_to_srgb(rgb_r.clamp(0.0, 1.0)) - linear_to_srgb(target.clamp(0.0, 1.0))).abs().mean(-1)
-        if mask is None:
-            return colour
-        return colour * (mask > 0.5) + (weight_sum.clamp(0.0, 1.0) - mask).abs()
+        colour = (linear_to_srgb(rgb_r) - linear_to_srgb(target)).abs().mean(-1)
+        err = colour if mask is None else colour * (mask > 0.5) + (weight_sum.clamp(0.0, 1.0) - mask).abs()
+        return torch.nan_to_num(err, nan=START_ERROR, posinf=START_ERROR, neginf=START_ERROR)
