@@ -94,25 +94,3 @@ def test_rays_that_miss_keep_the_max_weight_sample():
     assert torch.isfinite(ref.rgb_surf).all()
     assert torch.allclose(ref.surface.x[0], plain.surface.x[0])          # a miss: unchanged
     assert abs(float(ref.surface.x[1].norm()) - R0) < 2e-4                # a hit: on the sphere
-
-
-def _roughness_bias_grad(colour: str, detached: bool, inv_s: float = 500.0) -> float:
-    """|d sum(colour) / d b_r| on the material network's roughness output bias, one render at
-    NeuS sharpness ``inv_s``, the switch at ``inv_s >= 30`` when ``detached``."""
-    cfg, model = _model(inv_s)
-    cfg.render.surf_roughness_detached_inv_s = 30.0 if detached else 0.0
-    cfg.render.specular = True
-    out = _surf(cfg, model, _rays(32), refine=True, n_samples=24, n_importance=8, train=True)
-    bias = model.material.mlp.layers[-1].bias
-    (g,) = torch.autograd.grad(getattr(out, colour).sum(), bias)
-    return float(g[3].abs())
-
-
-def test_detached_surface_roughness_leaves_the_roughness_to_the_pixels():
-    # L_surf's colour reaches the roughness only without the switch; the volume colour (L_vol,
-    # against the pixels) reaches it either way, and the albedo and metallic still learn from L_surf
-    assert _roughness_bias_grad("rgb_surf", detached=False) > 0
-    assert _roughness_bias_grad("rgb_surf", detached=True) == 0.0
-    assert _roughness_bias_grad("rgb_surf", detached=True, inv_s=20.0) > 0   # before the switch
-    assert _roughness_bias_grad("rgb_vol", detached=True) > 0
-    assert _roughness_bias_grad("rgb_vol", detached=True) == _roughness_bias_grad("rgb_vol", detached=False)

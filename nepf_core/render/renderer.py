@@ -91,11 +91,6 @@ class RenderConfig:
     sample spacing in front of the surface, at an offset that changes with the sample
     placement. Costs one photon + material evaluation and 5 SDF queries per ray. Off in
     ``paper`` (the paper shades the max-weight point)."""
-    surf_roughness_detached_inv_s: float = 0.0
-    """Training with ``surface_refine``, > 0: once NeuS's ``inv_s`` reaches this value,
-    ``L_surf``'s PBR colour reads the roughness detached, so the roughness learns from the pixels
-    (``L_vol``) and not from the radiance network, whose highlights are wider and dimmer than the
-    pixels'; the early steps, where the metal calls form, stay as they were (trial, issue 33)."""
     amp_heads: bool = False
     """bf16 autocast for the radiance / photon / material networks only (CUDA). The SDF, the
     NeuS density and the BSDF stay in fp32: a bf16 SDF near the surface is off by ~1e-3,
@@ -212,9 +207,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     xj = fj = None
     if cfg.surface_refine and cfg.alpha_mode == "sample":
         xr, nr, fr, xj, fj = refine_surface(model, o, d, sw.z, sw.sdf, sw.idx_max, jitter_sigma=jitter_sigma)
-        p = shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray, logits=train,
-                         roughness_detached=train and 0 < cfg.surf_roughness_detached_inv_s
-                         <= float(sw.inv_s.detach().max()))
+        p = shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray, logits=train)
         rgb_surf = p.pbr
         surface = Surface(x=xr, normal=nr, direction=d, light_dir=p.light_dir, intensity=p.intensity,
                           albedo=p.albedo, roughness=p.roughness, metallic=p.metallic, material_logits=p.logits)

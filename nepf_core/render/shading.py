@@ -65,7 +65,7 @@ def _autocast(cfg, device: torch.device):
 
 
 def shade_points(model, cfg, shading: Shading, xs: Tensor, vs: Tensor, ns: Tensor, fs: Tensor,
-                 unlit: Tensor | None, *, logits: bool = False, roughness_detached: bool = False) -> PointShading:
+                 unlit: Tensor | None, *, logits: bool = False) -> PointShading:
     """Photon + material heads and the BSDF at ``N`` points: ``xs, vs, ns [N, 3]`` (position,
     ray direction, unit normal), ``fs [N, F]`` SDF features, ``unlit [N]`` bool or None. With
     ``cfg.unlit_albedo_stopgrad`` the colour error of an unlit point does not reach its albedo
@@ -82,13 +82,12 @@ def shade_points(model, cfg, shading: Shading, xs: Tensor, vs: Tensor, ns: Tenso
     albedo_shade = albedo
     if cfg.unlit_albedo_stopgrad and unlit is not None:
         albedo_shade = torch.where(unlit[:, None], albedo.detach(), albedo)
-    rough_shade = rough.detach() if roughness_detached else rough
     if not shading.specular:  # lobe dropped: (1 - w m) f_d(c) + w f_s, w fading to 0 (a dielectric diffuse)
-        pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal[:, None],
+        pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
                                      intensity[:, None], shading.diffuse_metal_weight, lambertian=cfg.lambertian,
                                      kind=cfg.bsdf_kind)
     else:
-        pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough_shade[:, None], metal[:, None],
+        pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
                          intensity[:, None], lambertian=cfg.lambertian, specular=True, kind=cfg.bsdf_kind)
     return PointShading(pbr, light_dir, intensity, albedo, rough, metal, None if z is None else z.float())
 
