@@ -13,7 +13,7 @@ from fastapi import Request
 from sqlalchemy.orm import sessionmaker
 
 from jobstore.engine import session_factory
-from jobstore.queue import make_celery
+from jobstore.queue import make_celery, prepare_embedded_broker
 from jobstore.storage import Storage, open_storage
 
 from .auth import TokenVerifier, load_secret
@@ -72,6 +72,7 @@ class Service:
         settings.data_path.mkdir(parents=True, exist_ok=True)
         storage.setup()
         settings.uploads_path.mkdir(parents=True, exist_ok=True)
+        prepare_embedded_broker(settings)
         Session = session_factory(settings.db_url)
         return cls(settings=settings, Session=Session,
                    verifier=TokenVerifier(Session, settings.auth_cache_s),

@@ -13,6 +13,9 @@ crashed worker had taken are not redelivered by this transport; the reconciler
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+
 from celery import Celery
 from kombu import Queue
 from kombu.transport import TRANSPORT_ALIASES
@@ -64,6 +67,34 @@ def make_celery(settings: Settings, name: str = "nepf") -> Celery:
     app = Celery(name)
     app.conf.update(celery_config(settings))
     return app
+
+
+def prepare_embedded_broker(settings: Settings) -> None:
+    """Create the embedded broker's tables and queue rows, one process at a time.
+
+    kombu's SQLAlchemy transport creates its tables (``create_all``: look, then ``CREATE``) and
+    each queue's row on first use in every process. ``nepf serve`` and its worker start together
+    on a fresh data dir, and the loser of that race gets "table kombu_queue already exists" or
+    "UNIQUE constraint failed: kombu_queue.name": the worker died at its start, or an upload
+    failed. Declaring every queue here under an ``flock`` on ``broker.sqlite3.prepare-lock``
+    leaves nothing for the first use to create. Every entry point calls it (serve, the API, the
+    worker); a no-op on an external broker.
+    """
+    if not settings.embedded:
+        return
+    app = make_celery(settings, "nepf-prepare")
+    db = settings.embedded_broker_path
+    db.parent.mkdir(parents=True, exist_ok=True)
+    with open(f"{db}.prepare-lock", "a") as lock, contextlib.ExitStack() as stack:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        stack.callback(fcntl.flock, lock, fcntl.LOCK_UN)
+        with app.connection_for_write() as conn:
+            channel = conn.channel()
+            try:
+                for queue in app.conf.task_queues:
+                    queue(channel).declare()
+            finally:
+                channel.close()
 
 
 def enqueue(app: Celery, job_id: str, queue: str) -> None:

@@ -118,10 +118,15 @@ class Settings(BaseSettings):
         return not self.broker_url
 
     @property
+    def embedded_broker_path(self) -> Path:
+        """The SQLite file of the embedded broker (used when ``broker_url`` is unset)."""
+        return self.data_path / "broker.sqlite3"
+
+    @property
     def effective_broker_url(self) -> str:
         if self.broker_url:
             return self.broker_url
-        return f"nepfsqla+sqlite:///{self.data_path / 'broker.sqlite3'}"
+        return f"nepfsqla+sqlite:///{self.embedded_broker_path}"
 
     def job_max_side(self, asked: Optional[int]) -> int:
         """The long side a job trains at: its ``max_image_side`` capped by the ceiling

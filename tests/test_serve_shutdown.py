@@ -217,6 +217,7 @@ def test_kill9_of_serve_and_worker_resumes_the_job_once_its_lease_expires(procs,
     api, base, h = procs.serve(data, "serve1")
     worker = procs.worker_pid(api)
     jid = _start_job(base, h, tmp_path, iters=iters, wait_step=12)
+    assert not _gone(worker), f"the worker {worker} exited by itself:\n{api.output()[-4000:]}"
     os.kill(worker, signal.SIGKILL)
     api.kill9()
     wait_for(lambda: _gone(worker), 30, what="the worker to die")

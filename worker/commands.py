@@ -43,7 +43,10 @@ def worker_main(argv: list[str] | None = None) -> int:
         return check_main(settings)
     # on the embedded broker, one worker per data dir: held until this process exits
     lock_fd = hold_data_dir_lock(settings.data_path) if settings.embedded else None
+    from jobstore.queue import prepare_embedded_broker
+
     from .tasks import app
+    prepare_embedded_broker(settings)
 
     pool = args.pool or ("solo" if args.concurrency == 1 else "prefork")
     try:
