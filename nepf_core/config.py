@@ -160,8 +160,8 @@ def fast() -> NePFConfig:
     occupied cell leave the training batch; NeuS coarse + importance samples on the others),
     adaptivity on, a parameter average for evaluation and export, and three albedo priors the
     paper does not have: unlit pixels do not train the albedo, a small albedo smoothness term
-    (docs/FAST.md, "Albedo in unlit regions"), and a colour Retinex term: lit points whose pixels
-    share a chromaticity share an albedo luminance (docs/FAST.md, "Colour Retinex"). L_surf is shaded at the SDF
+    (docs/FAST.md, "Albedo in unlit regions"), and, only once adaptivity has dropped the specular
+    lobe, an albedo flatness term (docs/FAST.md, "What fixed it"). L_surf is shaded at the SDF
     zero crossing of the max-weight section (``render.surface_refine``, docs/FAST.md "Shading
     L_surf at the zero crossing"). It shades with the glTF metallic-roughness BRDF
     (``render.bsdf_kind="gltf"``: Lambert + Smith GGX), the BRDF three.js and Blender render the

@@ -9,9 +9,7 @@ Colour terms compare display-space values ``srgb(.)`` (see ``docs/ARCHITECTURE.m
     L_hess  = w_hess * mean |H f|_F      (Frobenius norm of the SDF Hessian, fields/gradients.py)
     L_light = w_light * (l3 |var x - var I| + l4 |var n - var l| + l5 |var x - var l|)
     L_asm   = w_albedo_smooth * mean | c(x*) - c(x* + eps) |   (albedo smoothness prior, off in paper)
-    L_flat  = w_albedo_flat * mean_lit g_i | Y(c_i) / sg(Ybar_i) - 1 |, Y = channel mean, Ybar_i the mean
-              Y(c_j) of the lit rays j != i whose pixels have the same chromaticity (weights k_ij),
-              g_i = sum_j k_ij / (1 + sum_j k_ij)   (colour Retinex: albedo_flat_loss)
+    L_flat  = w_albedo_flat * mean_lit | Y(c) / sg(mean_lit Y(c)) - 1 |, Y = channel mean   (lobe off only)
     L_mask  = w_mask * BCE(clip(sum w, 1e-3, 1 - 1e-3), mask)
     L_bsm   = w_brdf_smooth * mean (|r(x*) - r(x* + eps)| + |m(x*) - m(x* + eps)|)   (off in paper)
     L_range = w_material_range * mean_surf mean_k relu(|z_k| - z_max)   (z: material logits; off in paper)
@@ -42,7 +40,6 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from nepf_core.albedo_retinex import albedo_flat_loss
 from nepf_core.color import linear_to_srgb
 from nepf_core.rays import RayBatch
 from nepf_core.render.neus import foreground
@@ -80,17 +77,15 @@ class LossConfig:
     > 0`` (an error otherwise: :meth:`nepf_core.config.NePFConfig.check`); not in the paper. Unlit regions carry no albedo information, so without a prior
     their albedo is whatever the network extrapolates; this lets neighbouring lit albedo fill it."""
     w_albedo_flat: float = 0.0
-    """Colour Retinex (:func:`albedo_flat_loss`): lit surface rays whose target pixels have the same
-    chromaticity pull the luminance of their albedos together (stop-grad on the partner), relative
-    L1. Shading ``c I(x) (n.l) / pi`` sees only the product of the albedo and the scalar photon
-    intensity, so any pattern ``s(x)`` the photon network can represent moves freely between them
-    (with the lobe on as well: it ties the split only near a highlight). Under one light colour
-    the shading scales a pixel and keeps its chromaticity, while a texture changes it: pairs of the
-    same chromaticity give their difference to the light, pairs of different chromaticity are
-    left to the images. Both this and the colour terms are L1, so texture stays in the albedo
-    only where the colour terms' gradient on the albedo is larger, and that gradient carries the
-    shading ``I (n.l) / pi`` and the sRGB slope: the weight must stay well under ``lambda2_vol``
-    times that slope, or the texture moves into the light (docs/FAST.md, "Colour Retinex")."""
+    """Lobe off only (``compute_losses(..., specular=False)``): lit surface rays pull the
+    luminance of their albedo toward the batch's mean (stop-grad), relative L1. Diffuse-only
+    shading ``c I(x) (n.l) / pi`` sees only the product of the albedo and the scalar photon
+    intensity, so any pattern ``s(x)`` the photon network can represent moves freely between
+    them; this term gives it to the light (slow variation is illumination: the Retinex
+    assumption). Both this and the colour terms are L1, so texture stays in the albedo only where
+    the colour terms' gradient on the albedo is larger, and that gradient carries the shading
+    ``I (n.l) / pi`` and the sRGB slope: the weight must stay well under ``lambda2_vol`` times
+    that slope, or the texture moves into the light (docs/FAST.md, "What fixed it")."""
     w_brdf_smooth: float = 0.0
     """The smoothness prior of ``w_albedo_smooth`` for roughness and metallic:
     ``mean (|r(x*) - r(x* + eps)| + |m(x*) - m(x* + eps)|)``. With a smoothness prior on the albedo
@@ -200,6 +195,8 @@ class LossBatch:
     rays: RayBatch
     cfg: LossConfig
     use_mask: bool
+    specular: bool
+    """The render evaluated the GGX lobe (L_flat applies only without it)."""
     background: bool
     """The model has a background volume (L_bg with masks)."""
     zero: Tensor
@@ -229,7 +226,8 @@ class LossBatch:
     """Without masks: ``mean_p |f(p)|`` at the triangulated object points (draws its own points)."""
 
 
-def loss_batch(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, background: bool = False, background_rays: tuple[Tensor, RayBatch] | None = None,
+def loss_batch(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, specular: bool = True,
+               background: bool = False, background_rays: tuple[Tensor, RayBatch] | None = None,
                surface_points: Callable[[], Tensor] | None = None) -> LossBatch:
     """The shared values of :class:`LossBatch`. ``background_rays = (C_bg [B, 3], rays [B])``: the
     misses the empty-ray rule left out of the SDF batch, rendered by the background alone (their
@@ -258,7 +256,7 @@ def loss_batch(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, backgrou
     surf_rays = fg if fg is not None else foreground(out.weight_sum).float()
     on_surf = surf_rays > 0.5
     lit = on_surf & ~rays.unlit if rays.unlit is not None else on_surf
-    return LossBatch(out=out, rays=rays, cfg=cfg, use_mask=use_mask, background=background,
+    return LossBatch(out=out, rays=rays, cfg=cfg, use_mask=use_mask, specular=specular, background=background,
                      zero=zero, gt=gt, fg=fg, r_sdf=r_sdf, r_enc=r_enc, vol_enc=vol_enc, gt_all=gt_all,
                      colour_w=colour_w, fg_all=fg_all, outside_q=outside_q, surf_rays=surf_rays, on_surf=on_surf,
                      lit=lit, surface_points=surface_points)
@@ -316,9 +314,10 @@ def loss_albedo_smooth(b: LossBatch) -> Tensor:
 
 
 def loss_albedo_flat(b: LossBatch) -> Tensor:
-    if b.lit.sum() < 2:
+    if b.specular or b.lit.sum() < 2:
         return b.zero
-    return albedo_flat_loss(b.out.surface.albedo[b.lit].mean(-1), b.rays.rgb[b.lit].to(b.out.surface.albedo.dtype))
+    lum = b.out.surface.albedo[b.lit].mean(-1)
+    return (lum / lum.detach().mean().clamp_min(1e-4) - 1.0).abs().mean()
 
 
 def loss_brdf_smooth(b: LossBatch) -> Tensor:
@@ -406,13 +405,14 @@ def needs_lobe_split(cfg: LossConfig) -> bool:
     return any(t.lobe_split and getattr(cfg, t.weight) > 0 for t in LOSS_TERMS)
 
 
-def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, background: bool = False, background_rays: tuple[Tensor, RayBatch] | None = None,
+def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, specular: bool = True,
+                   background: bool = False, background_rays: tuple[Tensor, RayBatch] | None = None,
                    surface_points: Callable[[], Tensor] | None = None) -> dict[str, Tensor]:
     """Every term of :data:`LOSS_TERMS` by name (unweighted; 0 where its weight is 0), for one
     render ``out`` of ``rays``; arguments as :func:`loss_batch`. ``loss_surface_points`` is
     present only with ``surface_points``, ``loss_material_evidence`` only when ``out`` carries the
     evidence (the training step gathers it; a plain render does not). :func:`total_loss` sums them."""
-    b = loss_batch(out, rays, cfg, use_mask=use_mask, background=background,
+    b = loss_batch(out, rays, cfg, use_mask=use_mask, specular=specular, background=background,
                    background_rays=background_rays, surface_points=surface_points)
     terms = {}
     for t in LOSS_TERMS:

@@ -16,7 +16,7 @@ from nepf_core.train.run_state import RunState
 
 
 def make_adapt(*, enabled=True, iters_fixed=True, iters=1000, w_hessian=5e-4, plateau_window=1, preset=tiny,
-               **rules):
+               w_albedo_flat=None, **rules):
     """``(Adaptivity, RunState)`` on ``preset`` (``tiny``); the plateau tests hand-work single
     evaluations (``plateau_window=1``) unless they test the running mean. ``rules``: RuleConfig
     overrides (the config's ``rules`` section)."""
@@ -24,6 +24,8 @@ def make_adapt(*, enabled=True, iters_fixed=True, iters=1000, w_hessian=5e-4, pl
     cfg.train.iters = iters
     cfg.train.adaptive = enabled
     cfg.loss.w_hessian = w_hessian
+    if w_albedo_flat is not None:
+        cfg.loss.w_albedo_flat = w_albedo_flat
     cfg.rules = dataclasses.replace(cfg.rules, plateau_window=plateau_window, **rules)
     rs = RunState.from_config(cfg)
     return Adaptivity(cfg, rs, iters_fixed=iters_fixed), rs

@@ -90,6 +90,20 @@ def test_lobe_return_streak_and_the_switch_survive_a_checkpoint_resume():
     assert rs_b.specular
 
 
+def test_albedo_flatness_prior_is_recorded_on_exactly_while_the_lobe_is_off():
+    a, rs = _dropped()
+    for k in range(a.rc.patience):
+        check(a, 400 + 100 * k, fake_out(share=0.2), losses())
+    assert rs.specular and not named(a, "albedo_flatness_prior")   # tiny has no flatness prior
+    b, _ = make_adapt(w_albedo_flat=3e-5)
+    for step in (100, 200, 300):
+        check(b, step, fake_out(share=0.0), losses())
+    back = 400 + 100 * (b.rc.patience - 1)
+    for step in range(400, back + 1, 100):
+        check(b, step, fake_out(share=0.2), losses())
+    assert [(d["value"], d["step"]) for d in named(b, "albedo_flatness_prior")] == [(True, 300), (False, back)]
+
+
 def test_specular_reenabled_by_highlight_residual_for_patience_checks():
     a, rs = _dropped()
     a.specular.vote_on_highlight(400, 2.0, rs.specular)   # below highlight_ratio = 3: no vote

@@ -256,7 +256,7 @@ class TrainingRun:
                 self.metal_record.update(x[out.material_evidence.rays], ev.metallic, ev.metallic_confidence)
                 out.metal_share = self.metal_record.metal_share(x)
         points = None if self.surface_points is None else (lambda: self.surface_points.loss(model, self.gen))
-        losses = compute_losses(out, rays, loss_cfg, use_mask=rs.use_mask_loss,
+        losses = compute_losses(out, rays, loss_cfg, use_mask=rs.use_mask_loss, specular=rs.specular,
                                 background=rs.background, background_rays=background_rays, surface_points=points)
         loss = losses["loss"] = total_loss(losses, loss_cfg)
         for h in self.hooks:

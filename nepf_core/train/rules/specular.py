@@ -16,7 +16,9 @@ Every ``check_every`` steps after a warm-up (``warmup_frac`` of the run, at most
 A drop fades the shading from the full BSDF to a dielectric diffuse over ``lobe_fade_steps``:
 ``(1 - w m) f_d(c) + w f_s`` with ``w = max(0, 1 - (step - t_drop) / lobe_fade_steps)``
 (:func:`nepf_core.bsdf.shade_fading_lobe`; the image is the same at the drop, an immediate
-switch to ``f_d`` would double the shading of a surface at metallic ~0.5).
+switch to ``f_d`` would double the shading of a surface at metallic ~0.5). While the lobe is
+off the albedo flatness prior (``loss.w_albedo_flat``) applies, because diffuse-only shading
+sees only albedo x light intensity.
 
 While it is off, a check votes for its return when the spread exceeds ``2 view_spread_thr``,
 when no spread is measured and the lobe's share would exceed ``2 spec_thr``, or when the
@@ -45,7 +47,7 @@ class SpecularRule(RuleCallback):
 
     def __init__(self, cfg, run_state) -> None:
         """``cfg``: the run's :class:`~nepf_core.config.NePFConfig` (``rules``, ``train.adaptive``,
-        ``train.iters``); ``run_state``: the run's, whose lobe switch
+        ``train.iters``, ``loss.w_albedo_flat``); ``run_state``: the run's, whose lobe switch
         (``specular``) and fade weight (``diffuse_metal_weight``) the rule sets."""
         self.cfg, self.rc, self.run_state = cfg, cfg.rules, run_state
         self.enabled = bool(cfg.train.adaptive)
@@ -135,7 +137,7 @@ class SpecularRule(RuleCallback):
 
     def decide(self, step: int, out, specular_on: bool) -> list[Decision]:
         """At a check (``out.lobe``: the render's :class:`~nepf_core.render.surface.LobeSplit`): the
-        lobe decision, or nothing."""
+        lobe decision (and the albedo flatness record that goes with it), or nothing."""
         rc = self.rc
         if out.lobe is None or step < min(rc.warmup_frac * self.cfg.train.iters, rc.warmup_max_steps):
             return []
@@ -192,7 +194,13 @@ class SpecularRule(RuleCallback):
         if not on:
             self.fade_start = step
             self.run_state.diffuse_metal_weight = 1.0
-        return [Decision("specular_lobe", on, reason, step)]
+        out = [Decision("specular_lobe", on, reason, step)]
+        if self.cfg.loss.w_albedo_flat > 0:
+            out.append(Decision("albedo_flatness_prior", not on,
+                                "specular lobe back on: the images tie the light again" if on else
+                                f"specular lobe off: diffuse-only shading sees only albedo x light intensity, so slow "
+                                f"luminance variation goes to the light (weight {self.cfg.loss.w_albedo_flat:g})", step))
+        return out
 
     def kept_report(self, step: int) -> Decision:
         """The record of a lobe kept to the end of the run (from the last check's numbers)."""
