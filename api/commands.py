@@ -166,8 +166,6 @@ def serve_main(argv: list[str] | None = None) -> int:
     except SchemaMismatch as exc:
         print(f"nepf serve: {exc}", file=sys.stderr)
         return 2
-    from jobstore.queue import prepare_embedded_broker
-    prepare_embedded_broker(settings)   # before the worker starts: the two would race to create it
     token, created = ensure_local_token(settings)
     shown_host = "127.0.0.1" if args.host in ("0.0.0.0", "::", "") else args.host
     base = settings.public_url or f"http://{shown_host}:{args.port}"

@@ -13,7 +13,6 @@ crashed worker had taken are not redelivered by this transport; the reconciler
 
 from __future__ import annotations
 
-import contextlib
 import fcntl
 
 from celery import Celery
@@ -77,17 +76,16 @@ def prepare_embedded_broker(settings: Settings) -> None:
     on a fresh data dir, and the loser of that race gets "table kombu_queue already exists" or
     "UNIQUE constraint failed: kombu_queue.name": the worker died at its start, or an upload
     failed. Declaring every queue here under an ``flock`` on ``broker.sqlite3.prepare-lock``
-    leaves nothing for the first use to create. Every entry point calls it (serve, the API, the
-    worker); a no-op on an external broker.
+    leaves nothing for the first use to create. Both entry points call it before they touch the
+    broker (the API's ``Service.create``, the worker's ``worker_main``); a no-op on an external broker.
     """
     if not settings.embedded:
         return
     app = make_celery(settings, "nepf-prepare")
     db = settings.embedded_broker_path
     db.parent.mkdir(parents=True, exist_ok=True)
-    with open(f"{db}.prepare-lock", "a") as lock, contextlib.ExitStack() as stack:
+    with open(f"{db}.prepare-lock", "a") as lock:       # closing it releases the flock
         fcntl.flock(lock, fcntl.LOCK_EX)
-        stack.callback(fcntl.flock, lock, fcntl.LOCK_UN)
         with app.connection_for_write() as conn:
             channel = conn.channel()
             try:
