@@ -68,6 +68,17 @@ def make_celery(settings: Settings, name: str = "nepf") -> Celery:
     return app
 
 
+def declare_queues(app: Celery) -> None:
+    """Declare every queue of ``app`` on its broker (what a sender's or consumer's first use does)."""
+    with app.connection_for_write() as conn:
+        channel = conn.channel()
+        try:
+            for queue in app.conf.task_queues:
+                queue(channel).declare()
+        finally:
+            channel.close()
+
+
 def prepare_embedded_broker(settings: Settings) -> None:
     """Create the embedded broker's tables and queue rows, one process at a time.
 
@@ -81,18 +92,11 @@ def prepare_embedded_broker(settings: Settings) -> None:
     """
     if not settings.embedded:
         return
-    app = make_celery(settings, "nepf-prepare")
     db = settings.embedded_broker_path
     db.parent.mkdir(parents=True, exist_ok=True)
     with open(f"{db}.prepare-lock", "a") as lock:       # closing it releases the flock
         fcntl.flock(lock, fcntl.LOCK_EX)
-        with app.connection_for_write() as conn:
-            channel = conn.channel()
-            try:
-                for queue in app.conf.task_queues:
-                    queue(channel).declare()
-            finally:
-                channel.close()
+        declare_queues(make_celery(settings, "nepf-prepare"))
 
 
 def enqueue(app: Celery, job_id: str, queue: str) -> None:

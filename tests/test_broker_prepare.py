@@ -2,8 +2,8 @@
 
 kombu's SQLAlchemy transport creates its tables and queue rows lazily in every process; two
 processes starting on a fresh data dir (``nepf serve`` and its worker) raced, and the loser got
-"table kombu_queue already exists" or "UNIQUE constraint failed: kombu_queue.name" (a worker that
-died at its start in CI). These tests start processes at one barrier, as serve and its worker do.
+"table kombu_queue already exists" or "UNIQUE constraint failed: kombu_queue.name" (the inferred
+cause of a worker that died at its start in CI). These tests start processes at one barrier, as serve and its worker do.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 import multiprocessing as mp
 import sqlite3
 
-from jobstore.queue import QUEUES, make_celery, prepare_embedded_broker
+from jobstore.queue import QUEUES, declare_queues, make_celery, prepare_embedded_broker
 from jobstore.settings import Settings
 
 ROUNDS = 8
@@ -25,12 +25,7 @@ def _start_like_a_process(data_dir: str, barrier, results, prepare: bool) -> Non
     try:
         if prepare:
             prepare_embedded_broker(settings)
-        app = make_celery(settings, "race")
-        with app.connection_for_write() as conn:
-            channel = conn.channel()
-            for queue in app.conf.task_queues:
-                queue(channel).declare()
-            channel.close()
+        declare_queues(make_celery(settings, "race"))
         results.put("ok")
     except Exception as exc:  # noqa: BLE001 - the parent reports what the child hit
         results.put(f"{type(exc).__name__}: {str(exc).splitlines()[0]}")
