@@ -196,7 +196,7 @@ def fast() -> NePFConfig:
                             surface_refine=True, bsdf_kind="gltf"),
         loss=LossConfig(w_hessian=0.0, w_surface_points=0.1, w_albedo_smooth=2e-4, w_albedo_flat=3e-6, w_brdf_smooth=2e-4,
                         w_material_range=1e-4, w_colour_range=1e-2, w_metallic_unseen=1e-4,
-                        w_material_evidence=1e-3, lambda4=0.0, lambda5=0.0),
+                        w_material_evidence=1e-3, w_normal_smooth=0.025, lambda4=0.0, lambda5=0.0),
         train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,
                           anneal_end=2000, log_every=20, sync_every=500, checkpoint_every=1000,
                           eval_every_s=60.0, eval_stride=1, ema_decay=0.995, adaptive=True),

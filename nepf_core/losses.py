@@ -137,6 +137,10 @@ class LossConfig:
     paper (its scenes have masks)."""
     w_mask: float = 0.1
     """Mask BCE weight (NeuS's value); only applied when the scene has masks."""
+    w_normal_smooth: float = 0.0
+    """``w mean_surf |n(x*) - n(x_j)|``, ``x_j = x* + N(0, sigma^2 I)`` (the albedo prior's points):
+    a curvature prior at the surface; ``|n(x*) - n(x_j)| ~ sigma |H f|``, so ``w_hessian / sigma``
+    weighs it as the Hessian term would."""
 
 
 def l1_masked(pred: Tensor, target: Tensor, weight: Tensor | None) -> Tensor:
@@ -326,6 +330,11 @@ def loss_brdf_smooth(b: LossBatch) -> Tensor:
     return mean_where((s.roughness - j.roughness).abs() + (s.metallic - j.metallic).abs(), b.on_surf)
 
 
+def loss_normal_smooth(b: LossBatch) -> Tensor:
+    s = b.out.surface
+    return mean_where((s.normal - s.jitter.normal).norm(dim=-1), b.on_surf)
+
+
 def logit_excess(z: Tensor, z_max: float) -> Tensor:
     """``relu(|z| - z_max)``, elementwise: how far a logit lies past the range a sigmoid still
     trains in (the range priors ``w_material_range`` and ``w_colour_range``)."""
@@ -389,6 +398,8 @@ LOSS_TERMS: tuple[LossTerm, ...] = (
     LossTerm("loss_albedo_smooth", "w_albedo_smooth", loss_albedo_smooth),
     LossTerm("loss_albedo_flat", "w_albedo_flat", loss_albedo_flat),
     LossTerm("loss_brdf_smooth", "w_brdf_smooth", loss_brdf_smooth),
+    LossTerm("loss_normal_smooth", "w_normal_smooth", loss_normal_smooth,
+             present=lambda b: b.out.surface.jitter is not None and b.out.surface.jitter.normal is not None),
     LossTerm("loss_material_range", "w_material_range", loss_material_range),
     LossTerm("loss_colour_range", "w_colour_range", loss_colour_range),
     LossTerm("loss_metallic_unseen", "w_metallic_unseen", loss_metallic_unseen, lobe_split=True),

@@ -181,6 +181,20 @@ def test_albedo_priors_by_value():
     assert val(L["loss_albedo_flat"]) == 0.0
 
 
+def test_normal_smoothness_by_value():
+    """``mean_fg |n(x*) - n(x_j)|``: ray 0 keeps (0, 0, 1) -> 0; ray 1 turns from (0, 1, 0) to
+    (0, .6, .8) -> |(0, .4, -.8)| = sqrt(.8); ray 2 is background and must not count."""
+    zeros = torch.zeros(3, dtype=torch.float64)
+    jitter = MaterialSample(T([.5, .2, .2], [.4, .4, .4], [0., 0., 0.]), zeros, zeros,
+                            normal=T([0., 0., 1.], [0., .6, .8], [0., 0., -1.]))
+    out = _out()
+    out.surface.jitter = jitter
+    L = compute_losses(out, _rays(), _cfg(w_normal_smooth=1.0), use_mask=True)
+    assert val(L["loss_normal_smooth"]) == pytest.approx(math.sqrt(0.8) / 2, abs=1e-12)
+    # a render whose jittered points carry no normal (no refined surface) has no such term
+    assert "loss_normal_smooth" not in compute_losses(_out(), _rays(), _cfg(w_normal_smooth=1.0), use_mask=True)
+
+
 def test_total_is_each_term_times_its_own_weight():
     cfg = _cfg(w_r=1.0, lambda1_surf=0.5, lambda2_vol=0.25, w_eikonal=0.125, w_hessian=0.0625, w_light=2.0,
                w_mask=4.0)

@@ -94,3 +94,29 @@ def test_rays_that_miss_keep_the_max_weight_sample():
     assert torch.isfinite(ref.rgb_surf).all()
     assert torch.allclose(ref.surface.x[0], plain.surface.x[0])          # a miss: unchanged
     assert abs(float(ref.surface.x[1].norm()) - R0) < 2e-4                # a hit: on the sphere
+
+
+def test_the_smoothness_priors_points_get_their_own_normal():
+    """``refine_surface`` with a jitter: the points ``x_j`` around ``x*`` get the SDF's normal at
+    ``x_j`` from their own stencil. On the sphere ``|x| - r`` that is ``x_j / |x_j|`` wherever
+    ``x_j`` lies, so ``|n(x*) - n(x_j)|`` grows with the jitter as a curvature prior should."""
+    from nepf_core.render.surface import refine_surface
+    cfg, model = _model(500.0)
+    rays = _rays()
+    R = rays.origins.shape[0]
+    z = torch.linspace(1.2, 2.4, 48).expand(R, -1).contiguous()
+    with torch.no_grad():
+        pts = rays.origins[:, None, :] + rays.directions[:, None, :] * z[..., None]
+        f = model.sdf.sdf(pts.reshape(-1, 3)).reshape(R, -1)
+        idx = (f > 0).sum(-1) - 1          # the last sample outside: the first crossing follows it
+        torch.manual_seed(2)
+        xr, nr, _, xj, _, nj = refine_surface(model, rays.origins, rays.directions, z, f, idx, jitter_sigma=0.05)
+    radial = lambda x: torch.nn.functional.normalize(x, dim=-1)  # noqa: E731
+    assert float((nr * radial(xr)).sum(-1).min()) > 0.999
+    assert float((nj * radial(xj)).sum(-1).min()) > 0.999
+    # the chord between the two normals is the angle the radius turns: ~|x_j - x*|_tangential / r
+    assert float((nj - nr).norm(dim=-1).mean()) > 0.02
+    with torch.no_grad():
+        torch.manual_seed(2)
+        *_, none = refine_surface(model, rays.origins, rays.directions, z, f, idx, jitter_sigma=0.0)
+    assert none is None

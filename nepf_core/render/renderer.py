@@ -204,15 +204,15 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
 
     surface = surface_at_index(sel, flat_max, sw.pts, normals, d)
     jitter_sigma = cfg.albedo_smooth_sigma if train else 0.0
-    xj = fj = None
+    xj = fj = nj = None
     if cfg.surface_refine and cfg.alpha_mode == "sample":
-        xr, nr, fr, xj, fj = refine_surface(model, o, d, sw.z, sw.sdf, sw.idx_max, jitter_sigma=jitter_sigma)
+        xr, nr, fr, xj, fj, nj = refine_surface(model, o, d, sw.z, sw.sdf, sw.idx_max, jitter_sigma=jitter_sigma)
         p = shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray, logits=train)
         rgb_surf = p.pbr
         surface = Surface(x=xr, normal=nr, direction=d, light_dir=p.light_dir, intensity=p.intensity,
                           albedo=p.albedo, roughness=p.roughness, metallic=p.metallic, material_logits=p.logits)
     if jitter_sigma > 0:
-        surface.jitter = jittered_material(model, surface, jitter_sigma, amp=cfg.amp_heads, xj=xj, fj=fj)
+        surface.jitter = jittered_material(model, surface, jitter_sigma, amp=cfg.amp_heads, xj=xj, fj=fj, nj=nj)
     lobe = lobe_split(surface, rgb_surf, lambertian=cfg.lambertian, kind=cfg.bsdf_kind) if request.lobe_split else None
     return RenderOutput(rgb_r=rgb_r, rgb_vol=rgb_vol, rgb_surf=rgb_surf, weight_sum=weight_sum, w_max=sw.w_max,
                         depth=(sw.weights * sw.t_eval).sum(-1), eikonal=sw.eikonal, hessian=sw.hessian,

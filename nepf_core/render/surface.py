@@ -31,6 +31,8 @@ class MaterialSample:
     albedo: Tensor
     roughness: Tensor
     metallic: Tensor
+    normal: Tensor | None = None
+    """``[R, 3]`` the SDF's unit normal at the jittered points (only with ``surface_refine``)."""
 
 
 @dataclass
@@ -95,13 +97,15 @@ def surface_at_index(sel: "ShadedSamples", flat_max: Tensor, pts: Tensor, normal
 
 
 def refine_surface(model, o: Tensor, d: Tensor, z: Tensor, f: Tensor, idx_max: Tensor, *,
-                   jitter_sigma: float = 0.0) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None]:
+                   jitter_sigma: float = 0.0) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None,
+                                                       Tensor | None]:
     """The zero crossing ``x_r = o + t* d`` inside each ray's max-weight section
     (:func:`nepf_core.render.neus.surface_crossing_t`), its tetrahedral finite-difference normal
     and SDF features, in one SDF call. With ``jitter_sigma > 0`` the smoothness priors' points
-    ``x_j = x_r + N(0, sigma^2 I)`` (``torch.randn``) join the same call.
+    ``x_j = x_r + N(0, sigma^2 I)`` (``torch.randn``) and their own stencils join the same call.
 
-    Returns ``(x_r [R, 3], n_r [R, 3], feat_r [R, F], x_j [R, 3] or None, feat_j or None)``."""
+    Returns ``(x_r [R, 3], n_r [R, 3], feat_r [R, F], x_j [R, 3] or None, feat_j or None,
+    n_j [R, 3] or None)``."""
     R = o.shape[0]
     xr = o + d * surface_crossing_t(z, f, idx_max)[:, None]
     queries = [xr]
@@ -110,18 +114,20 @@ def refine_surface(model, o: Tensor, d: Tensor, z: Tensor, f: Tensor, idx_max: T
         xj = xr + jitter_sigma * torch.randn(xr.shape, device=o.device, dtype=xr.dtype)
         queries.append(xj)
     step = model.sdf.fd_step()
-    stencil, offsets = fd_stencil(xr, step, scheme="tetra", center="mean")
+    at = torch.cat(queries, 0)
+    stencil, offsets = fd_stencil(at, step, scheme="tetra", center="mean")
     f_all, feat_all = model.sdf(torch.cat([stencil] + queries, 0))
-    gr, _ = gradient_from_stencil(f_all, R, offsets, step, scheme="tetra", center="mean")
+    g, _ = gradient_from_stencil(f_all, at.shape[0], offsets, step, scheme="tetra", center="mean")
+    n = g / g.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     fr = feat_all[stencil.shape[0]:stencil.shape[0] + R]
+    nj = None
     if xj is not None:
-        fj = feat_all[stencil.shape[0] + R:]
-    nr = gr / gr.norm(dim=-1, keepdim=True).clamp_min(1e-8)
-    return xr, nr, fr, xj, fj
+        fj, nj = feat_all[stencil.shape[0] + R:], n[R:]
+    return xr, n[:R], fr, xj, fj, nj
 
 
 def jittered_material(model, surface: Surface, sigma: float, *, amp: bool, xj: Tensor | None = None,
-                      fj: Tensor | None = None) -> MaterialSample:
+                      fj: Tensor | None = None, nj: Tensor | None = None) -> MaterialSample:
     """The material at ``x_j = sg(x*) + N(0, sigma^2 I)`` with the normal ``sg(n*)`` (``xj, fj``:
     points and SDF features already drawn by :func:`refine_surface`; else drawn here with
     ``torch.randn`` and one SDF call)."""
@@ -131,7 +137,7 @@ def jittered_material(model, surface: Surface, sigma: float, *, amp: bool, xj: T
         _, fj = model.sdf(xj)
     with torch.autocast(device_type=xj.device.type, dtype=torch.bfloat16, enabled=amp and xj.device.type == "cuda"):
         a_j, r_j, m_j = model.material(xj, surface.normal.detach(), fj)
-    return MaterialSample(a_j.float(), r_j.float(), m_j.float())
+    return MaterialSample(a_j.float(), r_j.float(), m_j.float(), nj)
 
 
 @torch.no_grad()
