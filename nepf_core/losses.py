@@ -138,9 +138,10 @@ class LossConfig:
     w_mask: float = 0.1
     """Mask BCE weight (NeuS's value); only applied when the scene has masks."""
     w_normal_smooth: float = 0.0
-    """``w mean_surf |n(x*) - n(x_j)|``, ``x_j = x* + N(0, sigma^2 I)`` (the albedo prior's points):
-    a curvature prior at the surface; ``|n(x*) - n(x_j)| ~ sigma |H f|``, so ``w_hessian / sigma``
-    weighs it as the Hessian term would."""
+    """``w mean_surf |n(x* + e) + n(x* - e) - 2 n(x*)|``, ``e ~ N(0, sigma^2 I)`` (the albedo prior's
+    jitter): a second difference of the normal across the surface, which vanishes to first order on
+    any smoothly curved surface (a sphere's costs ``O(sigma^2 / r^2)``) and not on bumps at the
+    jitter's scale, so it smooths the grid's cell-scale noise without flattening true curvature."""
 
 
 def l1_masked(pred: Tensor, target: Tensor, weight: Tensor | None) -> Tensor:
@@ -332,7 +333,7 @@ def loss_brdf_smooth(b: LossBatch) -> Tensor:
 
 def loss_normal_smooth(b: LossBatch) -> Tensor:
     s = b.out.surface
-    return mean_where((s.normal - s.jitter.normal).norm(dim=-1), b.on_surf)
+    return mean_where((s.jitter.normal + s.jitter.normal_mirror - 2 * s.normal).norm(dim=-1), b.on_surf)
 
 
 def logit_excess(z: Tensor, z_max: float) -> Tensor:

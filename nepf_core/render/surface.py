@@ -33,6 +33,8 @@ class MaterialSample:
     metallic: Tensor
     normal: Tensor | None = None
     """``[R, 3]`` the SDF's unit normal at the jittered points (only with ``surface_refine``)."""
+    normal_mirror: Tensor | None = None
+    """``[R, 3]`` the SDF's unit normal at the mirrored points ``2 x* - x_j`` (with ``normal``)."""
 
 
 @dataclass
@@ -98,21 +100,23 @@ def surface_at_index(sel: "ShadedSamples", flat_max: Tensor, pts: Tensor, normal
 
 def refine_surface(model, o: Tensor, d: Tensor, z: Tensor, f: Tensor, idx_max: Tensor, *,
                    jitter_sigma: float = 0.0) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None,
-                                                       Tensor | None]:
+                                                       tuple[Tensor, Tensor] | None]:
     """The zero crossing ``x_r = o + t* d`` inside each ray's max-weight section
     (:func:`nepf_core.render.neus.surface_crossing_t`), its tetrahedral finite-difference normal
     and SDF features, in one SDF call. With ``jitter_sigma > 0`` the smoothness priors' points
-    ``x_j = x_r + N(0, sigma^2 I)`` (``torch.randn``) and their own stencils join the same call.
+    ``x_j = x_r + N(0, sigma^2 I)`` (``torch.randn``), their mirror images ``2 x_r - x_j`` and the
+    stencils of both join the same call (the normal smoothness prior's second difference).
 
     Returns ``(x_r [R, 3], n_r [R, 3], feat_r [R, F], x_j [R, 3] or None, feat_j or None,
-    n_j [R, 3] or None)``."""
+    (n_j, n_mirror) [R, 3] each, or None)``."""
     R = o.shape[0]
     xr = o + d * surface_crossing_t(z, f, idx_max)[:, None]
     queries = [xr]
     xj = fj = None
     if jitter_sigma > 0:
-        xj = xr + jitter_sigma * torch.randn(xr.shape, device=o.device, dtype=xr.dtype)
-        queries.append(xj)
+        eps = jitter_sigma * torch.randn(xr.shape, device=o.device, dtype=xr.dtype)
+        xj = xr + eps
+        queries += [xj, xr - eps]
     step = model.sdf.fd_step()
     at = torch.cat(queries, 0)
     stencil, offsets = fd_stencil(at, step, scheme="tetra", center="mean")
@@ -122,12 +126,12 @@ def refine_surface(model, o: Tensor, d: Tensor, z: Tensor, f: Tensor, idx_max: T
     fr = feat_all[stencil.shape[0]:stencil.shape[0] + R]
     nj = None
     if xj is not None:
-        fj, nj = feat_all[stencil.shape[0] + R:], n[R:]
+        fj, nj = feat_all[stencil.shape[0] + R:stencil.shape[0] + 2 * R], (n[R:2 * R], n[2 * R:])
     return xr, n[:R], fr, xj, fj, nj
 
 
 def jittered_material(model, surface: Surface, sigma: float, *, amp: bool, xj: Tensor | None = None,
-                      fj: Tensor | None = None, nj: Tensor | None = None) -> MaterialSample:
+                      fj: Tensor | None = None, nj: tuple[Tensor, Tensor] | None = None) -> MaterialSample:
     """The material at ``x_j = sg(x*) + N(0, sigma^2 I)`` with the normal ``sg(n*)`` (``xj, fj``:
     points and SDF features already drawn by :func:`refine_surface`; else drawn here with
     ``torch.randn`` and one SDF call)."""
@@ -137,7 +141,8 @@ def jittered_material(model, surface: Surface, sigma: float, *, amp: bool, xj: T
         _, fj = model.sdf(xj)
     with torch.autocast(device_type=xj.device.type, dtype=torch.bfloat16, enabled=amp and xj.device.type == "cuda"):
         a_j, r_j, m_j = model.material(xj, surface.normal.detach(), fj)
-    return MaterialSample(a_j.float(), r_j.float(), m_j.float(), nj)
+    n_j, n_m = nj if nj is not None else (None, None)
+    return MaterialSample(a_j.float(), r_j.float(), m_j.float(), n_j, n_m)
 
 
 @torch.no_grad()
