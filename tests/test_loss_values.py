@@ -182,15 +182,19 @@ def test_albedo_priors_by_value():
 
 
 def test_normal_smoothness_by_value():
-    """``mean_fg |n(x*) - n(x_j)|``: ray 0 keeps (0, 0, 1) -> 0; ray 1 turns from (0, 1, 0) to
-    (0, .6, .8) -> |(0, .4, -.8)| = sqrt(.8); ray 2 is background and must not count."""
+    """``mean_fg |n(x* + e) + n(x* - e) - 2 n(x*)|`` with the surface normals of ``_out``
+    ((0, 0, 1), (0, 1, 0), background): ray 0 keeps (0, 0, 1) on one side and turns to (0, .6, .8)
+    on the other -> |(0, .6, -.2)| = sqrt(.4); ray 1 turns the same way on both sides (a constant
+    curvature, (0, .8, .6) and (0, .8, -.6)) -> |(0, -.4, 0)| = .4; ray 2 is background and must not
+    count."""
     zeros = torch.zeros(3, dtype=torch.float64)
     jitter = MaterialSample(T([.5, .2, .2], [.4, .4, .4], [0., 0., 0.]), zeros, zeros,
-                            normal=T([0., 0., 1.], [0., .6, .8], [0., 0., -1.]))
+                            normal=T([0., 0., 1.], [0., .8, .6], [0., 0., -1.]),
+                            normal_mirror=T([0., .6, .8], [0., .8, -.6], [0., 0., 1.]))
     out = _out()
     out.surface.jitter = jitter
     L = compute_losses(out, _rays(), _cfg(w_normal_smooth=1.0), use_mask=True)
-    assert val(L["loss_normal_smooth"]) == pytest.approx(math.sqrt(0.8) / 2, abs=1e-12)
+    assert val(L["loss_normal_smooth"]) == pytest.approx((math.sqrt(0.4) + 0.4) / 2, abs=1e-12)
     # a render whose jittered points carry no normal (no refined surface) has no such term
     assert "loss_normal_smooth" not in compute_losses(_out(), _rays(), _cfg(w_normal_smooth=1.0), use_mask=True)
 
