@@ -176,6 +176,9 @@ def fast() -> NePFConfig:
     dielectric pull the metallic toward the kind that fits (docs/FAST.md, "Metal evidence from the
     radiance field across views"), and a decaying per-region record of those calls lifts the
     unseen-lobe prior where they say metal (``nepf_core/train/metal_record.py``).
+    A second difference of the SDF normal across the surface (``w_normal_smooth``) smooths the
+    grid's cell-scale normal noise, which a highlight shows, without flattening true curvature
+    (docs/FAST.md, "Normals: a second difference of the normal at the surface").
     Of the paper's light-variance terms only the intensity one (``lambda3``) stays: the two
     direction terms pull the light directions' spread toward the normals', which tilts ``l``
     toward ``n`` and moves the shading into the albedo (docs/FAST.md, "The light field's direction
