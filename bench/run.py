@@ -51,7 +51,7 @@ VARIANTS = {
               "model.sdf_grid.start_levels": 1,
               "render.n_samples": 48, "render.n_importance": 0, "render.up_sample_steps": 0,
               "render.alpha_mode": "midpoint", "render.normals": "fd", "render.head_weight_threshold": 0.0,
-              "render.surface_refine": False, "train.batch_rays": 1024},
+              "render.surface_refine": False, "loss.w_normal_smooth": 0.0, "train.batch_rays": 1024},
 }
 
 

@@ -103,6 +103,11 @@ class NePFConfig:
         if (self.loss.w_albedo_smooth > 0 or self.loss.w_brdf_smooth > 0) and self.render.albedo_smooth_sigma <= 0:
             raise ValueError("loss.w_albedo_smooth / loss.w_brdf_smooth > 0 need render.albedo_smooth_sigma > 0 "
                              "(the jitter of the smoothness priors); set it, or set the weights to 0")
+        if self.loss.w_normal_smooth > 0 and not (self.render.albedo_smooth_sigma > 0 and self.render.surface_refine
+                                                  and self.render.alpha_mode == "sample"):
+            raise ValueError("loss.w_normal_smooth > 0 needs render.surface_refine with render.alpha_mode = \"sample\" "
+                             "and render.albedo_smooth_sigma > 0 (the prior reads the normals at the refined surface "
+                             "point and its jittered points); set them, or set the weight to 0")
         if self.loss.w_material_evidence > 0 and self.render.bsdf_kind != "gltf":
             raise ValueError("loss.w_material_evidence > 0 needs render.bsdf_kind = \"gltf\" (the evidence fits "
                              "the glTF BSDF); set it, or set the weight to 0")

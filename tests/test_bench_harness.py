@@ -148,6 +148,8 @@ def test_variants_build_their_baselines():
     assert nv.model.occupancy_resolution == 0 and nv.train.batch_rays == 1024
     ad = build_config("fast", None, VARIANTS["adaptive"])
     assert ad.render == base.render and ad.model == base.model and ad.train.adaptive
+    for cfg in (on, nv, ad):
+        cfg.check()                      # each variant is a config fit() accepts
 
 
 def test_pairs_match_by_seed_and_tail_means(tmp_path):

@@ -46,4 +46,19 @@ def test_smoothness_priors_without_jitter_are_refused():
     with pytest.raises(ValueError, match="albedo_smooth_sigma"):
         cfg.check()
     cfg.loss.w_albedo_smooth = cfg.loss.w_brdf_smooth = 0.0
+    with pytest.raises(ValueError, match="w_normal_smooth"):
+        cfg.check()                      # the normal prior reads the same jittered points
+    cfg.loss.w_normal_smooth = 0.0
+    cfg.check()
+
+
+def test_the_normal_prior_without_a_refined_surface_is_refused():
+    """``w_normal_smooth`` > 0 reads the normals at the refined surface point and its jittered
+    points, which the renderer computes only with ``render.surface_refine`` in sample mode: an
+    error, not a term that silently never applies."""
+    cfg = fast()
+    cfg.render.surface_refine = False
+    with pytest.raises(ValueError, match="surface_refine"):
+        cfg.check()
+    cfg.loss.w_normal_smooth = 0.0
     cfg.check()
