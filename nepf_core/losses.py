@@ -332,6 +332,7 @@ def loss_brdf_smooth(b: LossBatch) -> Tensor:
 
 
 def loss_normal_smooth(b: LossBatch) -> Tensor:
+    """``mean_surf |n(x* + e) + n(x* - e) - 2 n(x*)|`` (:attr:`LossConfig.w_normal_smooth`)."""
     s = b.out.surface
     return mean_where((s.jitter.normal + s.jitter.normal_mirror - 2 * s.normal).norm(dim=-1), b.on_surf)
 

@@ -134,7 +134,8 @@ def jittered_material(model, surface: Surface, sigma: float, *, amp: bool, xj: T
                       fj: Tensor | None = None, nj: tuple[Tensor, Tensor] | None = None) -> MaterialSample:
     """The material at ``x_j = sg(x*) + N(0, sigma^2 I)`` with the normal ``sg(n*)`` (``xj, fj``:
     points and SDF features already drawn by :func:`refine_surface`; else drawn here with
-    ``torch.randn`` and one SDF call)."""
+    ``torch.randn`` and one SDF call). ``nj``: the SDF normals at ``x_j`` and at its mirror image
+    from :func:`refine_surface`, carried for the normal prior (None without a refined surface)."""
     if xj is None:
         x = surface.x.detach()
         xj = x + sigma * torch.randn(x.shape, device=x.device, dtype=x.dtype)
