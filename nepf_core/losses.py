@@ -383,6 +383,8 @@ class LossTerm:
     fn: Callable[[LossBatch], Tensor]
     lobe_split: bool = False
     """The term reads :attr:`RenderOutput.lobe` (the render must be asked for it)."""
+    jitter_normals: bool = False
+    """The term reads the jittered points' normals (the render must be asked for them)."""
     present: Callable[[LossBatch], bool] | None = None
     """For a term whose input only some renders carry: whether this batch has it (the term is left
     out otherwise). None: always present."""
@@ -400,7 +402,7 @@ LOSS_TERMS: tuple[LossTerm, ...] = (
     LossTerm("loss_albedo_smooth", "w_albedo_smooth", loss_albedo_smooth),
     LossTerm("loss_albedo_flat", "w_albedo_flat", loss_albedo_flat),
     LossTerm("loss_brdf_smooth", "w_brdf_smooth", loss_brdf_smooth),
-    LossTerm("loss_normal_smooth", "w_normal_smooth", loss_normal_smooth,
+    LossTerm("loss_normal_smooth", "w_normal_smooth", loss_normal_smooth, jitter_normals=True,
              present=lambda b: b.out.surface.jitter is not None and b.out.surface.jitter.normal is not None),
     LossTerm("loss_material_range", "w_material_range", loss_material_range),
     LossTerm("loss_colour_range", "w_colour_range", loss_colour_range),
@@ -416,6 +418,11 @@ LOSS_TERMS: tuple[LossTerm, ...] = (
 def needs_lobe_split(cfg: LossConfig) -> bool:
     """Whether a term with a non-zero weight reads :attr:`RenderOutput.lobe`."""
     return any(t.lobe_split and getattr(cfg, t.weight) > 0 for t in LOSS_TERMS)
+
+
+def needs_jitter_normals(cfg: LossConfig) -> bool:
+    """Whether a term with a non-zero weight reads the jittered points' normals."""
+    return any(t.jitter_normals and getattr(cfg, t.weight) > 0 for t in LOSS_TERMS)
 
 
 def compute_losses(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, specular: bool = True,

@@ -195,7 +195,7 @@ def test_normal_smoothness_by_value():
     out.surface.jitter = jitter
     L = compute_losses(out, _rays(), _cfg(w_normal_smooth=1.0), use_mask=True)
     assert val(L["loss_normal_smooth"]) == pytest.approx((math.sqrt(0.4) + 0.4) / 2, abs=1e-12)
-    # a render whose jittered points carry no normal (no refined surface) has no such term
+    # a render whose jittered points carry no normal (not asked for) has no such term
     assert "loss_normal_smooth" not in compute_losses(_out(), _rays(), _cfg(w_normal_smooth=1.0), use_mask=True)
 
 
@@ -213,3 +213,13 @@ def test_a_zero_weight_switches_its_term_off():
     cfg = _cfg(w_r=0.0, lambda1_surf=0.0, lambda2_vol=0.0, w_eikonal=0.0, w_hessian=0.0, w_light=0.0, w_mask=0.0)
     L = compute_losses(_out(), _rays(), cfg, use_mask=True)
     assert all(val(v) == 0.0 for v in L.values())
+
+
+def test_the_normal_prior_asks_the_render_for_the_jittered_normals_only_when_weighted():
+    """The renderer computes the jittered points' stencils only when a weighted term reads them."""
+    from nepf_core.config import fast
+    from nepf_core.losses import needs_jitter_normals
+    cfg = fast()
+    assert cfg.loss.w_normal_smooth > 0 and needs_jitter_normals(cfg.loss)
+    cfg.loss.w_normal_smooth = 0.0
+    assert not needs_jitter_normals(cfg.loss)

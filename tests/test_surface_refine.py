@@ -112,8 +112,8 @@ def test_the_smoothness_priors_points_get_their_own_normal():
         f = model.sdf.sdf(pts.reshape(-1, 3)).reshape(R, -1)
         idx = (f > 0).sum(-1) - 1          # the last sample outside: the first crossing follows it
         torch.manual_seed(2)
-        xr, nr, _, xj, _, (nj, nm) = refine_surface(model, rays.origins, rays.directions, z, f, idx,
-                                                     jitter_sigma=0.05)
+        xr, nr, _, xj, fj, (nj, nm) = refine_surface(model, rays.origins, rays.directions, z, f, idx,
+                                                      jitter_sigma=0.05, jitter_normals=True)
     radial = lambda x: torch.nn.functional.normalize(x, dim=-1)  # noqa: E731
     assert float((nr * radial(xr)).sum(-1).min()) > 0.999
     assert float((nj * radial(xj)).sum(-1).min()) > 0.999
@@ -124,5 +124,13 @@ def test_the_smoothness_priors_points_get_their_own_normal():
     assert second < first / 3
     with torch.no_grad():
         torch.manual_seed(2)
-        *_, none = refine_surface(model, rays.origins, rays.directions, z, f, idx, jitter_sigma=0.0)
+        *_, none = refine_surface(model, rays.origins, rays.directions, z, f, idx, jitter_sigma=0.0,
+                                  jitter_normals=True)
+        torch.manual_seed(2)
+        xr2, nr2, _, xj2, fj2, unasked = refine_surface(model, rays.origins, rays.directions, z, f, idx,
+                                                        jitter_sigma=0.05)
     assert none is None
+    # not asked for (no normal prior): the same points, normals and features, without the stencils
+    assert unasked is None
+    for a, b in ((xr, xr2), (nr, nr2), (xj, xj2), (fj, fj2)):
+        assert torch.allclose(a, b, atol=1e-6)

@@ -206,7 +206,8 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     jitter_sigma = cfg.albedo_smooth_sigma if train else 0.0
     xj = fj = nj = None
     if cfg.surface_refine and cfg.alpha_mode == "sample":
-        xr, nr, fr, xj, fj, nj = refine_surface(model, o, d, sw.z, sw.sdf, sw.idx_max, jitter_sigma=jitter_sigma)
+        xr, nr, fr, xj, fj, nj = refine_surface(model, o, d, sw.z, sw.sdf, sw.idx_max, jitter_sigma=jitter_sigma,
+                                                jitter_normals=request.jitter_normals)
         p = shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray, logits=train)
         rgb_surf = p.pbr
         surface = Surface(x=xr, normal=nr, direction=d, light_dir=p.light_dir, intensity=p.intensity,

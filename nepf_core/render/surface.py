@@ -80,6 +80,9 @@ class SurfaceRequest:
 
     lobe_split: bool = False
     """Fill :attr:`RenderOutput.lobe <nepf_core.render.renderer.RenderOutput.lobe>`."""
+    jitter_normals: bool = False
+    """Fill :attr:`MaterialSample.normal` and ``normal_mirror`` at the jittered points (the normal
+    prior; a training render with a refined surface)."""
 
     def __or__(self, other: "SurfaceRequest") -> "SurfaceRequest":
         return SurfaceRequest(**{f.name: getattr(self, f.name) or getattr(other, f.name)
@@ -99,13 +102,14 @@ def surface_at_index(sel: "ShadedSamples", flat_max: Tensor, pts: Tensor, normal
 
 
 def refine_surface(model, o: Tensor, d: Tensor, z: Tensor, f: Tensor, idx_max: Tensor, *,
-                   jitter_sigma: float = 0.0) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None,
-                                                       tuple[Tensor, Tensor] | None]:
+                   jitter_sigma: float = 0.0, jitter_normals: bool = False
+                   ) -> tuple[Tensor, Tensor, Tensor, Tensor | None, Tensor | None, tuple[Tensor, Tensor] | None]:
     """The zero crossing ``x_r = o + t* d`` inside each ray's max-weight section
     (:func:`nepf_core.render.neus.surface_crossing_t`), its tetrahedral finite-difference normal
     and SDF features, in one SDF call. With ``jitter_sigma > 0`` the smoothness priors' points
-    ``x_j = x_r + N(0, sigma^2 I)`` (``torch.randn``), their mirror images ``2 x_r - x_j`` and the
-    stencils of both join the same call (the normal smoothness prior's second difference).
+    ``x_j = x_r + N(0, sigma^2 I)`` (``torch.randn``) join the same call; with ``jitter_normals``
+    also their mirror images ``2 x_r - x_j`` and the stencils of both (the normal prior's second
+    difference), which the call otherwise leaves out.
 
     Returns ``(x_r [R, 3], n_r [R, 3], feat_r [R, F], x_j [R, 3] or None, feat_j or None,
     (n_j, n_mirror) [R, 3] each, or None)``."""
@@ -113,20 +117,20 @@ def refine_surface(model, o: Tensor, d: Tensor, z: Tensor, f: Tensor, idx_max: T
     xr = o + d * surface_crossing_t(z, f, idx_max)[:, None]
     queries = [xr]
     xj = fj = None
+    jitter_normals = jitter_normals and jitter_sigma > 0
     if jitter_sigma > 0:
         eps = jitter_sigma * torch.randn(xr.shape, device=o.device, dtype=xr.dtype)
         xj = xr + eps
-        queries += [xj, xr - eps]
+        queries += [xj, xr - eps] if jitter_normals else [xj]
     step = model.sdf.fd_step()
-    at = torch.cat(queries, 0)
+    at = torch.cat(queries, 0) if jitter_normals else xr
     stencil, offsets = fd_stencil(at, step, scheme="tetra", center="mean")
     f_all, feat_all = model.sdf(torch.cat([stencil] + queries, 0))
     g, _ = gradient_from_stencil(f_all, at.shape[0], offsets, step, scheme="tetra", center="mean")
     n = g / g.norm(dim=-1, keepdim=True).clamp_min(1e-8)
     fr = feat_all[stencil.shape[0]:stencil.shape[0] + R]
-    nj = None
-    if xj is not None:
-        fj, nj = feat_all[stencil.shape[0] + R:stencil.shape[0] + 2 * R], (n[R:2 * R], n[2 * R:])
+    fj = None if xj is None else feat_all[stencil.shape[0] + R:stencil.shape[0] + 2 * R]
+    nj = (n[R:2 * R], n[2 * R:]) if jitter_normals else None
     return xr, n[:R], fr, xj, fj, nj
 
 

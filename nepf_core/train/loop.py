@@ -31,7 +31,7 @@ from nepf_core.callbacks import FitCallbacks
 from nepf_core.checkpoint import load_checkpoint, prune_checkpoints, save_checkpoint
 from nepf_core.config import NePFConfig
 from nepf_core.data.scene import Scene
-from nepf_core.losses import compute_losses, needs_lobe_split, total_loss
+from nepf_core.losses import compute_losses, needs_jitter_normals, needs_lobe_split, total_loss
 from nepf_core.model import NePFModel
 from nepf_core.rays import PixelSampler
 from nepf_core.render.material_evidence import gather_evidence
@@ -238,7 +238,8 @@ class TrainingRun:
             rays.unlit = rays.rgb.amax(-1) < self.unlit_thr
         loss_cfg = rs.loss_config(self.cfg.loss)
         batch = self.adaptivity.on_batch(StepBatch(step=self.step, model=model, rays=rays, generator=self.gen,
-                                                   request=SurfaceRequest(lobe_split=needs_lobe_split(loss_cfg))))
+                                                   request=SurfaceRequest(lobe_split=needs_lobe_split(loss_cfg),
+                                                                          jitter_normals=needs_jitter_normals(loss_cfg))))
         rays, left_out = batch.rays, batch.left_out
         out = render_rays(model, rays, self.run_cfg.render, train=True, cos_anneal=self.anneal, generator=self.gen,
                           request=batch.request, shading=rs.shading())
