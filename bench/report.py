@@ -1,4 +1,5 @@
-"""Tables, ratios and plots of a benchmark (``results.json`` -> ``table.md``, ``error_vs_time_<scene>.png``).
+"""Tables, ratios and plots of a benchmark (``results.json`` -> ``table.md``, ``error_vs_time_<scene>.png``;
+the table's markdown is :mod:`bench.report_table`).
 
 ``python -m bench report DIR [--target-psnr X]`` rebuilds them from ``DIR/results.json``.
 
@@ -38,14 +39,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 from pathlib import Path
 
 from bench.curves import (_curve, _finite, _groups, _median, _median_time, _saved_pct, best_psnr, chamfer_of,
                           final_test, level_savings, run_seed, smoothed_curve, tail_mean, time_to_reach,
                           time_to_reach_smoothed)
-from bench.relight_report import relight_row, relight_table_lines
+from bench.relight_report import relight_row
+from bench.report_table import write_table
 
 TOLERANCE_DB = 0.3
 """The issue's "at <= 0.3 dB lower PSNR" (per-pair table, "within 0.3 dB" column)."""
@@ -56,40 +57,38 @@ BASELINES = ("all_on", "naive")
 
 def summarize(results: dict, target_psnr: float | None = None) -> dict:
     """Rows (one per scene/config/variant, medians over repeats) and the comparisons."""
-    runs = results.get("runs", [])
-    groups = _groups(runs)
+    groups = _groups(results.get("runs", []))
+    return {"rows": _scene_rows(groups, target_psnr), "fast_vs_paper": _fast_vs_paper(groups),
+            "adaptive_vs_all_on": _adaptive_vs_baselines(groups)}
+
+
+def _scene_rows(groups: dict, target_psnr: float | None) -> list[dict]:
+    """One row per ``(scene, config, variant)``: medians over its repeats, and the time to X."""
     rows = []
     for (scene, config, variant), recs in groups.items():
         fins = [final_test(r) for r in recs]
         chs = [chamfer_of(r) for r in recs]
-        steps = _median([r.get("steps") for r in recs])
-        wall = _median([r.get("train_wall_s") for r in recs])
         rows.append({
             "scene": scene, "config": config, "variant": variant, "n": len(recs),
             "status": ",".join(sorted({str(r.get("status")) for r in recs})),
             "errors": [r["error"] for r in recs if r.get("error")],
             "budget_s": recs[0].get("budget_s"),
-            "steps": steps, "train_wall_s": wall,
-            "test_psnr": _median([f.get("test_psnr") for f in fins]),
-            "test_psnr_full": _median([f.get("test_psnr_full") for f in fins]),
-            "test_psnr_radiance": _median([f.get("test_psnr_radiance") for f in fins]),
-            "albedo_psnr": _median([f.get("albedo_psnr") for f in fins]),
-            "albedo_psnr_lit": _median([f.get("albedo_psnr_lit") for f in fins]),
+            "steps": _median([r.get("steps") for r in recs]), "train_wall_s": _median([r.get("train_wall_s") for r in recs]),
+            **{k: _median([f.get(k) for f in fins]) for k in ("test_psnr", "test_psnr_full", "test_psnr_radiance",
+                                                               "albedo_psnr", "albedo_psnr_lit")},
             "best_test_psnr": _median([best_psnr(r) for r in recs]),
             "chamfer": _median([c for c, _ in chs]), "chamfer_fine": all(fine for _, fine in chs),
             "chamfer_resolution": recs[0].get("chamfer_resolution"),
             "peak_rss_mb": _median([r.get("peak_rss_mb_process") for r in recs]),
             "peak_rss_mb_fit": _median([r.get("peak_rss_mb_fit") for r in recs]),
-            "s_per_step": _median([r["train_wall_s"] / r["steps"] for r in recs
-                                   if _finite(r.get("train_wall_s")) and r.get("steps")]),
+            "s_per_step": _median([_sps(r) for r in recs if _sps(r) is not None]),
             "nonfinite_steps": _median([r.get("nonfinite_steps") for r in recs]),
             "cpu_util": _median([(r.get("cpu_user_s", 0) + r.get("cpu_sys_s", 0)) / r["process_wall_s"]
                                  for r in recs if r.get("process_wall_s")]),
             "loadavg_start": recs[0].get("loadavg_start"),
             **relight_row(recs),
         })
-    # common target X per scene
-    for row in rows:
+    for row in rows:   # the common target X of a scene
         if target_psnr is not None:
             row["target_X"] = target_psnr
         else:
@@ -97,24 +96,25 @@ def summarize(results: dict, target_psnr: float | None = None) -> dict:
             row["target_X"] = min(finals) if finals else None
         tt = _median_time(groups[(row["scene"], row["config"], row["variant"])], lambda r, x=row["target_X"]: x)
         row["t_to_X"], row["t_to_X_reached"] = tt["t"], f"{tt['reached']}/{tt['n']}"
+    return rows
 
-    fast_vs_paper = []
-    scenes = sorted({k[0] for k in groups})
-    variants = sorted({k[2] for k in groups})
-    for scene in scenes:
-        for variant in variants:
+
+def _fast_vs_paper(groups: dict) -> list[dict]:
+    """Per scene and variant: the time ``fast`` and ``paper`` take to reach ``paper``'s best."""
+    out = []
+    for scene in sorted({k[0] for k in groups}):
+        for variant in sorted({k[2] for k in groups}):
             fp, pp = groups.get((scene, "fast", variant)), groups.get((scene, "paper", variant))
             if not fp or not pp:
                 continue
-            pairs = list(zip(pp, fp))
             per = []
-            for p, f in pairs:
+            for p, f in zip(pp, fp):
                 target = best_psnr(p)
                 tp, tf = time_to_reach(p, target), time_to_reach(f, target)
                 per.append({"paper_best": target, "t_paper": tp, "t_fast": tf,
                             "ratio": (tp / tf) if tp is not None and tf else None,
                             "fast_final": final_test(f).get("test_psnr"), "fast_best": best_psnr(f)})
-            fast_vs_paper.append({
+            out.append({
                 "scene": scene, "variant": variant, "n": len(per), "per_repeat": per,
                 "paper_best": _median([x["paper_best"] for x in per]),
                 "t_paper": _median([x["t_paper"] for x in per]),
@@ -123,62 +123,73 @@ def summarize(results: dict, target_psnr: float | None = None) -> dict:
                 "ratio": _median([x["ratio"] for x in per]) if all(x["ratio"] is not None for x in per) else None,
                 "fast_best": _median([x["fast_best"] for x in per]),
                 "budget_paper": pp[0].get("budget_s"), "budget_fast": fp[0].get("budget_s")})
+    return out
 
-    adaptive_vs_all_on = []
-    configs = sorted({k[1] for k in groups})
+
+_PAIR_MEDIANS = ("target", "final_adaptive", "final_all_on", "diff", "t_adaptive", "t_all_on", "saved_pct",
+                 "s_per_step_adaptive", "s_per_step_all_on", "chamfer_adaptive", "chamfer_all_on",
+                 "albedo_adaptive", "albedo_all_on")
+
+
+def _adaptive_vs_baselines(groups: dict) -> list[dict]:
+    """Per scene, config and baseline of :data:`BASELINES`: the adaptive runs against the
+    baseline's, paired by repeat (:func:`_pair`), and the medians over pairs."""
+    out = []
+    scenes, configs = sorted({k[0] for k in groups}), sorted({k[1] for k in groups})
     for scene, config, baseline in [(sc, co, b) for sc in scenes for co in configs for b in BASELINES]:
         ap, bp = groups.get((scene, config, "adaptive")), groups.get((scene, config, baseline))
         if not ap or not bp:
             continue
-        per = []
-        for a, b in zip(ap, bp):
-            fa, fb = final_test(a).get("test_psnr"), final_test(b).get("test_psnr")
-            target = min(fa, fb) if _finite(fa) and _finite(fb) else None
-            ta, tb = time_to_reach(a, target), time_to_reach(b, target)
-            per.append({"target": target, "final_adaptive": fa, "final_all_on": fb,
-                        "diff": (fa - fb) if target is not None else None, "t_adaptive": ta, "t_all_on": tb,
-                        "saved_pct": _saved_pct(ta, tb),
-                        "s_per_step_adaptive": _sps(a), "s_per_step_all_on": _sps(b),
-                        "chamfer_adaptive": chamfer_of(a)[0], "chamfer_all_on": chamfer_of(b)[0],
-                        "seed": run_seed(a), "steps_adaptive": a.get("steps"), "steps_all_on": b.get("steps"),
-                        "wall_adaptive": a.get("train_wall_s"), "wall_all_on": b.get("train_wall_s"),
-                        "tail_adaptive": tail_mean(a), "tail_all_on": tail_mean(b),
-                        "albedo_adaptive": final_test(a).get("albedo_psnr"),
-                        "albedo_all_on": final_test(b).get("albedo_psnr"),
-                        "left_out": _left_out(a)})
-            tt = min(per[-1]["tail_adaptive"], per[-1]["tail_all_on"]) \
-                if _finite(per[-1]["tail_adaptive"]) and _finite(per[-1]["tail_all_on"]) else None
-            tta, ttb = time_to_reach(a, tt), time_to_reach(b, tt)
-            per[-1]["tail_saved_pct"] = _saved_pct(tta, ttb)
-            # the issue's tolerance read literally: the adaptive run's time to come within
-            # TOLERANCE_DB of the baseline's final, against the baseline's time to its final
-            tol_a = time_to_reach(a, fb - TOLERANCE_DB) if _finite(fb) else None
-            tol_b = time_to_reach(b, fb) if _finite(fb) else None
-            per[-1].update({"t_adaptive_tol": tol_a, "t_all_on_tol": tol_b,
-                            "tol_saved_pct": _saved_pct(tol_a, tol_b)})
-            sa, sb = smoothed_curve(a), smoothed_curve(b)
-            fsa, fsb = (sa[-1][1] if sa else None), (sb[-1][1] if sb else None)
-            st = min(fsa, fsb) if fsa is not None and fsb is not None else None
-            sta, stb = time_to_reach_smoothed(a, st), time_to_reach_smoothed(b, st)
-            sto_a = time_to_reach_smoothed(a, fsb - TOLERANCE_DB) if fsb is not None else None
-            sto_b = time_to_reach_smoothed(b, fsb) if fsb is not None else None
-            per[-1].update({"smooth_final_adaptive": fsa, "smooth_final_all_on": fsb,
-                            "smooth_diff": (fsa - fsb) if st is not None else None,
-                            "smooth_t_adaptive": sta, "smooth_t_all_on": stb, "smooth_saved_pct": _saved_pct(sta, stb),
-                            "smooth_t_adaptive_tol": sto_a, "smooth_t_all_on_tol": sto_b,
-                            "smooth_tol_saved_pct": _saved_pct(sto_a, sto_b)})
-            lv = [x["saved_pct"] for x in level_savings(a, b) if x["saved_pct"] is not None]
-            per[-1].update({"levels_n": len(lv), "levels_saved_median_pct": _median(lv) if lv else None,
-                            "levels_saved_30_n": sum(v >= 30.0 for v in lv)})
+        per = [_pair(a, b) for a, b in zip(ap, bp)]
         row = {"scene": scene, "config": config, "baseline": baseline, "n": len(per), "per_repeat": per}
-        for k in ("target", "final_adaptive", "final_all_on", "diff", "t_adaptive", "t_all_on", "saved_pct",
-                  "s_per_step_adaptive", "s_per_step_all_on", "chamfer_adaptive", "chamfer_all_on",
-                  "albedo_adaptive", "albedo_all_on"):
+        for k in _PAIR_MEDIANS:
             vals = [x[k] for x in per]
             row[k] = _median(vals) if all(v is not None for v in vals) else None
         row["left_out"] = per[0]["left_out"] if per else []
-        adaptive_vs_all_on.append(row)
-    return {"rows": rows, "fast_vs_paper": fast_vs_paper, "adaptive_vs_all_on": adaptive_vs_all_on}
+        out.append(row)
+    return out
+
+
+def _pair(a: dict, b: dict) -> dict:
+    """One adaptive run ``a`` against its baseline ``b``: finals, times to the lower final (raw,
+    tail mean, within :data:`TOLERANCE_DB`, smoothed) and the time saved at each level."""
+    fa, fb = final_test(a).get("test_psnr"), final_test(b).get("test_psnr")
+    target = min(fa, fb) if _finite(fa) and _finite(fb) else None
+    ta, tb = time_to_reach(a, target), time_to_reach(b, target)
+    p = {"target": target, "final_adaptive": fa, "final_all_on": fb,
+         "diff": (fa - fb) if target is not None else None, "t_adaptive": ta, "t_all_on": tb,
+         "saved_pct": _saved_pct(ta, tb),
+         "s_per_step_adaptive": _sps(a), "s_per_step_all_on": _sps(b),
+         "chamfer_adaptive": chamfer_of(a)[0], "chamfer_all_on": chamfer_of(b)[0],
+         "seed": run_seed(a), "steps_adaptive": a.get("steps"), "steps_all_on": b.get("steps"),
+         "wall_adaptive": a.get("train_wall_s"), "wall_all_on": b.get("train_wall_s"),
+         "tail_adaptive": tail_mean(a), "tail_all_on": tail_mean(b),
+         "albedo_adaptive": final_test(a).get("albedo_psnr"),
+         "albedo_all_on": final_test(b).get("albedo_psnr"),
+         "left_out": _left_out(a)}
+    tt = min(p["tail_adaptive"], p["tail_all_on"]) \
+        if _finite(p["tail_adaptive"]) and _finite(p["tail_all_on"]) else None
+    p["tail_saved_pct"] = _saved_pct(time_to_reach(a, tt), time_to_reach(b, tt))
+    # the issue's tolerance read literally: the adaptive run's time to come within
+    # TOLERANCE_DB of the baseline's final, against the baseline's time to its final
+    tol_a = time_to_reach(a, fb - TOLERANCE_DB) if _finite(fb) else None
+    tol_b = time_to_reach(b, fb) if _finite(fb) else None
+    p.update({"t_adaptive_tol": tol_a, "t_all_on_tol": tol_b, "tol_saved_pct": _saved_pct(tol_a, tol_b)})
+    sa, sb = smoothed_curve(a), smoothed_curve(b)
+    fsa, fsb = (sa[-1][1] if sa else None), (sb[-1][1] if sb else None)
+    st = min(fsa, fsb) if fsa is not None and fsb is not None else None
+    sta, stb = time_to_reach_smoothed(a, st), time_to_reach_smoothed(b, st)
+    sto_a = time_to_reach_smoothed(a, fsb - TOLERANCE_DB) if fsb is not None else None
+    sto_b = time_to_reach_smoothed(b, fsb) if fsb is not None else None
+    p.update({"smooth_final_adaptive": fsa, "smooth_final_all_on": fsb,
+              "smooth_diff": (fsa - fsb) if st is not None else None,
+              "smooth_t_adaptive": sta, "smooth_t_all_on": stb, "smooth_saved_pct": _saved_pct(sta, stb),
+              "smooth_t_adaptive_tol": sto_a, "smooth_t_all_on_tol": sto_b,
+              "smooth_tol_saved_pct": _saved_pct(sto_a, sto_b)})
+    lv = [x["saved_pct"] for x in level_savings(a, b) if x["saved_pct"] is not None]
+    p.update({"levels_n": len(lv), "levels_saved_median_pct": _median(lv) if lv else None,
+              "levels_saved_30_n": sum(v >= 30.0 for v in lv)})
+    return p
 
 
 def _sps(r: dict):
@@ -194,147 +205,6 @@ def _left_out(r: dict) -> list[str]:
         if isinstance(d, dict) and d.get("decision"):
             out.append(f"{d['decision']}={d.get('value')}")
     return out
-
-
-# ----------------------------------------------------------------------------------------------
-# writers
-# ----------------------------------------------------------------------------------------------
-
-def _fmt(x, nd=2, none="n/a"):
-    if x is None:
-        return none
-    if isinstance(x, float) and not math.isfinite(x):
-        return str(x)
-    if isinstance(x, (int, float)):
-        return f"{x:.{nd}f}"
-    return str(x)
-
-
-def _la(x):
-    return "n/a" if not x else "/".join(f"{v:.1f}" for v in x)
-
-
-def _fmt_t(x):
-    return "not reached" if x is None else f"{x:.0f}"
-
-
-def write_table(results: dict, summary: dict, path: Path) -> None:
-    m = results.get("machine", {})
-    L = ["# NePF benchmark", "",
-         f"Command: `{results.get('command', '')}`  ", f"Working directory: `{results.get('cwd', '')}`  ",
-         f"Started {results.get('started', '?')}, finished {results.get('finished', '?')}.", "",
-         "Machine: " + ", ".join(f"{k} {m.get(k)}" for k in ("cpu_model", "cpu_count", "cpus_allowed", "mem_total_mb",
-                                                              "torch", "threads", "cgroup_cpu_max") if k in m)
-         + f"; load average (1, 5, 15 min) at start {_la(m.get('loadavg'))} and end {_la(m.get('loadavg_end'))}.", ""]
-    L += ["## Runs", "",
-          "| scene | config | variant | n | status | budget s | steps | train wall s | test PSNR masked | "
-          "test PSNR full | radiance PSNR masked | albedo PSNR | albedo PSNR lit px | Chamfer (unit sphere) | peak RSS MB | s/step | "
-          "NaN steps | X (dB) | time to X (s) | CPU util |",
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r in sorted(summary["rows"], key=lambda r: (r["scene"], r["config"], r["variant"])):
-        ch = _fmt(r["chamfer"], 5) + ("" if r["chamfer_fine"] or r["chamfer"] is None else "*")
-        tx = _fmt_t(r["t_to_X"]) + (f" ({r['t_to_X_reached']})" if r["n"] > 1 else "")
-        L.append(f"| {r['scene']} | {r['config']} | {r['variant']} | {r['n']} | {r['status']} | {_fmt(r['budget_s'], 0)} | "
-                 f"{_fmt(r['steps'], 0)} | {_fmt(r['train_wall_s'], 0)} | {_fmt(r['test_psnr'])} | "
-                 f"{_fmt(r['test_psnr_full'])} | {_fmt(r.get('test_psnr_radiance'))} | {_fmt(r['albedo_psnr'])} | {_fmt(r['albedo_psnr_lit'])} | {ch} | {_fmt(r['peak_rss_mb'], 0)} | "
-                 f"{_fmt(r['s_per_step'], 3)} | {_fmt(r['nonfinite_steps'], 0)} | {_fmt(r['target_X'])} | {tx} | "
-                 f"{_fmt(r['cpu_util'], 2)} |")
-    res = {r["chamfer_resolution"] for r in summary["rows"]}
-    L += ["", f"Chamfer: final model, marching cubes at {sorted(x for x in res if x)}³, "
-              "100k-sample default per mesh, unit-sphere units; `*` = last in-training value (128³) because "
-              "the fine one failed or was skipped. Peak RSS: the whole run process (os.wait4), including the "
-              "final Chamfer mesh. Albedo PSNR (per-channel least-squares scale, sRGB) over every foreground "
-              "pixel, and over the lit ones only (test pixel max channel >= 1% of the foreground 99th "
-              "percentile; where the fixed light never reaches, no view constrains the albedo). X: `--target-psnr` or the lowest final masked PSNR of the scene's rows. "
-              "CPU util: CPU seconds / process seconds of the run (at most the thread count; lower means "
-              "the machine was shared or the run waited on I/O).", ""]
-    L += relight_table_lines(summary["rows"])
-    errs = [(r["scene"], r["config"], r["variant"], e) for r in summary["rows"] for e in r["errors"]]
-    if errs:
-        L += ["Errors:", ""] + [f"* {s}/{c}/{v}: {e}" for s, c, v, e in errs] + [""]
-    if summary["fast_vs_paper"]:
-        L += ["## fast vs paper: time to reach paper's best test PSNR", "",
-              "| scene | variant | paper best (dB) | paper time (s) | fast time (s) | ratio paper/fast | "
-              "fast best (dB) | budgets paper/fast (s) |", "|---|---|---|---|---|---|---|---|"]
-        for x in summary["fast_vs_paper"]:
-            rt = _fmt(x["ratio"]) + "x" if x["ratio"] is not None else "n/a (fast did not reach it)"
-            reached = "" if x["n"] == 1 else f" ({x['fast_reached']}/{x['n']})"
-            L.append(f"| {x['scene']} | {x['variant']} | {_fmt(x['paper_best'])} | {_fmt_t(x['t_paper'])} | "
-                     f"{_fmt_t(x['t_fast'])}{reached} | "
-                     f"{rt} | {_fmt(x['fast_best'])} | {_fmt(x['budget_paper'], 0)}/{_fmt(x['budget_fast'], 0)} |")
-        L.append("")
-    if summary["adaptive_vs_all_on"]:
-        L += ["## adaptive vs everything-on baselines: time to reach the same test PSNR", "",
-              "Baselines: `all_on` = adaptivity off and no empty ray left out (NeuS coarse-to-fine sampler, "
-              "same sample counts); `naive` = the brief's dense-grid reference rebuilt on the NePF model "
-              "(one 96^3 grid level, 1024 rays x 48 uniform samples, FD normals, nothing adaptive).", "",
-              "| scene | config | baseline | target (dB) | final adaptive | final baseline | diff (dB) | "
-              "t adaptive (s) | t baseline (s) | time saved | s/step adaptive / baseline | "
-              "Chamfer adaptive / baseline | albedo adaptive / baseline | adaptive decisions |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-        for x in summary["adaptive_vs_all_on"]:
-            L.append(f"| {x['scene']} | {x['config']} | {x['baseline']} | {_fmt(x['target'])} | "
-                     f"{_fmt(x['final_adaptive'])} | "
-                     f"{_fmt(x['final_all_on'])} | {_fmt(x['diff'], 2)} | {_fmt_t(x['t_adaptive'])} | "
-                     f"{_fmt_t(x['t_all_on'])} | {_fmt(x['saved_pct'], 0)}% | "
-                     f"{_fmt(x['s_per_step_adaptive'], 3)} / {_fmt(x['s_per_step_all_on'], 3)} | "
-                     f"{_fmt(x['chamfer_adaptive'], 5)} / {_fmt(x['chamfer_all_on'], 5)} | "
-                     f"{_fmt(x['albedo_adaptive'])} / {_fmt(x['albedo_all_on'])} | "
-                     f"{'; '.join(x['left_out']) or '-'} |")
-        L.append("")
-        L += ["### Per pair", "",
-              "Matched by seed (`train.seed`). final = last evaluation; tail = mean of the evaluations in the "
-              "last 10 % of each run's training time; time saved to the pair's lower final, and to the lower "
-              "tail mean (first evaluation at or above it); \"within 0.3 dB\": the adaptive run's time to "
-              "the baseline's final minus 0.3 dB against the baseline's time to its final.", "",
-              "| scene | baseline | seed | steps adaptive / baseline | train s adaptive / baseline | final adaptive / baseline (dB) | "
-              "diff | t to lower final adaptive / baseline (s) | saved | tail adaptive / baseline (dB) | saved to lower tail | "
-              "t within 0.3 dB adaptive / baseline (s) | saved within 0.3 dB | "
-              "albedo adaptive / baseline | Chamfer adaptive / baseline |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
-        for x in summary["adaptive_vs_all_on"]:
-            for p in x["per_repeat"]:
-                ta_, tb_ = p["tail_adaptive"], p["tail_all_on"]
-                sv = p.get("tail_saved_pct")
-                L.append(f"| {x['scene']} | {x['baseline']} | {p['seed']} | {_fmt(p['steps_adaptive'], 0)} / "
-                         f"{_fmt(p['steps_all_on'], 0)} | {_fmt(p['wall_adaptive'], 0)} / {_fmt(p['wall_all_on'], 0)} | "
-                         f"{_fmt(p['final_adaptive'])} / {_fmt(p['final_all_on'])} | {_fmt(p['diff'])} | "
-                         f"{_fmt_t(p['t_adaptive'])} / {_fmt_t(p['t_all_on'])} | {_fmt(p['saved_pct'], 0)}% | "
-                         f"{_fmt(ta_)} / {_fmt(tb_)} | {_fmt(sv, 0)}% | "
-                         f"{_fmt_t(p['t_adaptive_tol'])} / {_fmt_t(p['t_all_on_tol'])} | {_fmt(p['tol_saved_pct'], 0)}% | "
-                         f"{_fmt(p['albedo_adaptive'])} / {_fmt(p['albedo_all_on'])} | "
-                         f"{_fmt(p['chamfer_adaptive'], 5)} / {_fmt(p['chamfer_all_on'], 5)} |")
-        L.append("")
-        L += ["### Per pair, smoothed (running mean of 3 evaluations)", "",
-              "final = mean of the last 3 evaluations; times = first evaluation at which the running mean of "
-              "3 reaches the lower smoothed final, or (within 0.3 dB) the baseline's smoothed final minus 0.3 dB "
-              "for the adaptive run against the baseline's smoothed final for the baseline.", "",
-              "| scene | baseline | seed | final adaptive / baseline (dB) | diff | t to lower final adaptive / "
-              "baseline (s) | saved | t within 0.3 dB adaptive / baseline (s) | saved within 0.3 dB | "
-              "saved over levels: median (levels >= 30 % / levels) |",
-              "|---|---|---|---|---|---|---|---|---|---|"]
-        for x in summary["adaptive_vs_all_on"]:
-            for p in x["per_repeat"]:
-                L.append(f"| {x['scene']} | {x['baseline']} | {p['seed']} | {_fmt(p['smooth_final_adaptive'])} / "
-                         f"{_fmt(p['smooth_final_all_on'])} | {_fmt(p['smooth_diff'])} | "
-                         f"{_fmt_t(p['smooth_t_adaptive'])} / {_fmt_t(p['smooth_t_all_on'])} | "
-                         f"{_fmt(p['smooth_saved_pct'], 0)}% | {_fmt_t(p['smooth_t_adaptive_tol'])} / "
-                         f"{_fmt_t(p['smooth_t_all_on_tol'])} | {_fmt(p['smooth_tol_saved_pct'], 0)}% | "
-                         f"{_fmt(p['levels_saved_median_pct'], 0)}% ({p['levels_saved_30_n']} / {p['levels_n']}) |")
-        L.append("")
-    real = [r for r in results.get("runs", []) if r.get("mode") == "real"]
-    if real:
-        L += ["## Real data", ""]
-        for r in real:
-            sp = r.get("split") or {}
-            me = r.get("mesh") or {}
-            L.append(f"* {r['id']}: {sp.get('n_train')} train / {sp.get('n_test')} test views "
-                     f"(held out {sp.get('test_views')}), {sp.get('resolution')} px (downscale {sp.get('downscale')}); "
-                     f"final masked test PBR PSNR {_fmt(final_test(r).get('test_psnr'))} dB; mesh "
-                     f"{me.get('path', me.get('error'))} ({me.get('faces')} faces)")
-        L.append("")
-    L += ["## Definitions", "", (__doc__ or "").split("Definitions (also written into ``table.md``):")[-1].strip(), ""]
-    path.write_text("\n".join(L))
 
 
 def plot_scene(results: dict, scene: str, out_png: Path) -> None:
