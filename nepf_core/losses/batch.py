@@ -22,6 +22,12 @@ from nepf_core.rays import RayBatch
 from nepf_core.render.neus import foreground
 
 
+def logit_excess(z: Tensor, z_max: float) -> Tensor:
+    """``relu(|z| - z_max)``, elementwise: how far a logit lies past the range a sigmoid still
+    trains in (the range priors ``w_material_range`` and ``w_colour_range``)."""
+    return (z.abs() - z_max).clamp_min(0.0)
+
+
 def l1_masked(pred: Tensor, target: Tensor, weight: Tensor | None) -> Tensor:
     """``sum_r w_r |pred_r - target_r|_1 / (3 sum_r w_r)`` (plain mean when weight is None)."""
     err = (pred - target).abs()

@@ -18,7 +18,7 @@ from __future__ import annotations
 from torch import Tensor
 
 from nepf_core.color import linear_to_srgb
-from nepf_core.losses.batch import LossBatch, l1_masked, needs_input
+from nepf_core.losses.batch import LossBatch, l1_masked, logit_excess, needs_input
 
 
 def loss_radiance(b: LossBatch) -> Tensor:
@@ -39,12 +39,6 @@ def loss_surface(b: LossBatch) -> Tensor:
 
 def loss_volume(b: LossBatch) -> Tensor:
     return l1_masked(b.vol_enc, b.gt_all, b.colour_w)
-
-
-def logit_excess(z: Tensor, z_max: float) -> Tensor:
-    """``relu(|z| - z_max)``, elementwise: how far a logit lies past the range a sigmoid still
-    trains in (the range priors ``w_material_range`` and ``w_colour_range``)."""
-    return (z.abs() - z_max).clamp_min(0.0)
 
 
 def loss_colour_range(b: LossBatch) -> Tensor:

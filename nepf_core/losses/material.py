@@ -20,8 +20,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
-from nepf_core.losses.batch import LossBatch, mean_where, needs_input
-from nepf_core.losses.colour import logit_excess
+from nepf_core.losses.batch import LossBatch, logit_excess, mean_where, needs_input
 
 _JITTER = "render.albedo_smooth_sigma > 0 (a training render's Surface.jitter)"
 
