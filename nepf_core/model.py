@@ -31,12 +31,6 @@ class ModelConfig:
     """Material network (paper: 8x256 SIREN)."""
     init_variance: float = 0.3
     """NeuS deviation init: inv_s = exp(10 * 0.3) = 20."""
-    light_init_albedo: float = 0.0
-    """Start the photon intensity where the brightest foreground pixels need this albedo under
-    head-on light, ``I0 = pi q99(max_c L_gt) / a`` (:func:`nepf_core.train.setup.init_light_to_data`).
-    0: the fixed start ``I0 = 3`` (paper). Albedo and intensity share one scale, and from a start
-    too dim the albedo climbs to the material range prior's cap (``sigmoid(3) = 0.953``), where it
-    is flat and the texture goes elsewhere."""
     background: bool = False
     """A background volume outside the unit sphere (:mod:`nepf_core.fields.background`). fit()
     decides it from the data (:mod:`nepf_core.train.rules.masks`: on without masks, and with masks

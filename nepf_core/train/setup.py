@@ -77,29 +77,6 @@ def init_radiance_to_data(model: NePFModel, scene: Scene) -> None:
         last.bias.copy_(torch.log(p / (1.0 - p)).to(last.bias))
 
 
-def init_light_to_data(model: NePFModel, scene: Scene, albedo: float) -> Decision | None:
-    """Start the photon intensity at ``I0 = pi q99(max_c L_gt) / albedo`` over the foreground
-    (every pixel without masks) and say so; None (the fixed ``I0``) when ``albedo`` is 0.
-
-    A diffuse surface shows ``L = c / pi * I * (n . l)``: the images fix only the product of
-    albedo and intensity. Where the start ``I0`` is too dim for the scene the albedo climbs into
-    the top of its sigmoid, against the material range prior's cap, where a whole surface sits at
-    one colour (spot_svbrdf: red 0.952-0.953 on every pixel at 600 s and at 20,000 steps,
-    bench/RESULTS.md v55). From this start the brightest pixels need ``albedo`` for head-on light.
-    A resumed run overwrites it with its checkpoint (the intensity's offset is a buffer)."""
-    if albedo <= 0.0:
-        return None
-    peaks = foreground_peaks(scene.images, scene.masks)
-    step = max(1, peaks.size // 2_000_000)  # a subsample is plenty for a quantile
-    q99 = float(np.quantile(peaks[::step], 0.99)) if peaks.size else 0.0
-    i0 = float(np.pi * max(q99, 1e-3) / albedo)
-    with torch.no_grad():
-        model.photon.set_init_intensity(i0)
-    return Decision("light_init_intensity", {"intensity": round(i0, 4), "q99_linear": round(q99, 4), "albedo": albedo},
-                    f"photon intensity starts at {i0:.3g} (the brightest foreground pixels, {q99:.3g} linear, "
-                    f"need albedo {albedo} for head-on light)")
-
-
 def unlit_pixels(scene: Scene, stopgrad: bool, rel_threshold: float) -> tuple[float | None, Decision | None]:
     """``(threshold, decision)`` for ``render.unlit_albedo_stopgrad`` (``stopgrad``): a training
     pixel is unlit when ``max_c L_gt < rel_threshold * q99`` (:func:`nepf_core.rays.unlit_threshold`);
