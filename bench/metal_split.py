@@ -83,7 +83,7 @@ def main(argv: list[str] | None = None) -> None:
     if args.json:
         print(json.dumps(res, indent=1))
         return
-    print("| GT kind | pixels | n | called metal | metallic MAE |\n|---|---|---|---|---|")
+    print("| GT kind | pixels | count | called metal | metallic MAE |\n|---|---|---|---|---|")
     for kind, rows in res.items():
         for name, r in rows.items():
             print(f"| {kind} | {name} | {r['pixels']} | {r['called_metal']:.2f} | {r['mae']:.3f} |")
