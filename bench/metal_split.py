@@ -79,7 +79,12 @@ def main(argv: list[str] | None = None) -> None:
     for f in (renders, truth):
         if not f.is_file():
             raise SystemExit(f"bench.metal_split: {f.name} is missing under {f.parent.name}/")
-    res = metal_split(np.load(renders)["metallic"], dict(np.load(truth)))
+    gt = dict(np.load(truth))
+    missing = [k for k in ("alpha", "metallic", "albedo", "rgb_linear_per_light") if k not in gt]
+    if missing:
+        raise SystemExit(f"bench.metal_split: {truth.name} has no {', '.join(missing)} (a scene rendered per light "
+                         "is needed: ../shared/scenes)")
+    res = metal_split(np.load(renders)["metallic"], gt)
     if args.json:
         print(json.dumps(res, indent=1))
         return

@@ -67,3 +67,7 @@ def test_cli_reads_a_run_and_a_scene(tmp_path, capsys):
     assert res["metal"]["key"]["called_metal"] == 0.0 and res["metal"]["key"]["mae"] == 1.0
     with pytest.raises(SystemExit, match="arrays.npz is missing"):
         main([str(tmp_path / "scene"), str(tmp_path / "scene")])
+    del gt["rgb_linear_per_light"]
+    np.savez(tmp_path / "scene" / "gt" / "arrays_test.npz", **gt)
+    with pytest.raises(SystemExit, match="has no rgb_linear_per_light"):
+        main([str(tmp_path / "run"), str(tmp_path / "scene")])
