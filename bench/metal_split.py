@@ -26,18 +26,18 @@ from pathlib import Path
 
 import numpy as np
 
+from nepf_core.relight.metrics import FOREGROUND_ALPHA
+
 DARK = 0.02
 """A light's contribution (linear, channel mean) under this does not count as reaching a pixel."""
 DARK_ALBEDO = 0.2
 """A GT albedo (channel mean) under this is a dark dielectric."""
-FOREGROUND = 0.5
-"""GT alpha over this is foreground."""
 
 
 def pixel_groups(gt: dict) -> dict[str, np.ndarray]:
     """``{name: [V, H, W] bool}``: the groups of the module docstring, each within the foreground
     (``gt``: the arrays of ``gt/arrays_test.npz``)."""
-    fg = np.asarray(gt["alpha"], np.float32) > FOREGROUND
+    fg = np.asarray(gt["alpha"], np.float32) > FOREGROUND_ALPHA
     per_light = np.asarray(gt["rgb_linear_per_light"], np.float32).mean(-1)   # [V, L, H, W]
     key = per_light[:, 0]
     others = per_light[:, 1:].max(1) if per_light.shape[1] > 1 else np.zeros_like(key)
