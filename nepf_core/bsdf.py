@@ -305,12 +305,13 @@ def shade_fading_lobe(n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, roughness
     return f * intensity * dot(n, l).clamp_min(0.0)
 
 
-def diffuse_only_material(albedo: Tensor, metallic: Tensor, weight: float = 0.0) -> tuple[Tensor, Tensor]:
-    """The material rendered once the GGX lobe is dropped: ``(c, m) -> ((1 - w m) c, 0)``.
+def diffuse_only_material(albedo: Tensor, roughness: Tensor, metallic: Tensor,
+                          weight: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
+    """The material rendered once the GGX lobe is dropped: ``(c, r, m) -> ((1 - w m) c, 1, 0)``.
 
     With the lobe off the renderer shades ``f = (1 - w m) f_d(c)``
     (``RenderConfig.diffuse_metal_weight = w``), and both diffuse models are linear in the
-    albedo, so ``(1 - w m) f_d(c) = f_d((1 - w m) c)``: the returned pair renders the same
+    albedo, so ``(1 - w m) f_d(c) = f_d((1 - w m) c)``: the returned triple renders the same
     diffuse with metallic 0, which is what an exported asset must carry (a renderer such as
     Blender would otherwise add a metallic lobe the fit never had). ``w`` fades from 1 to 0
     after the drop (:func:`shade_fading_lobe`; the fading lobe ``w f_s`` itself is not carried,
@@ -318,8 +319,19 @@ def diffuse_only_material(albedo: Tensor, metallic: Tensor, weight: float = 0.0)
     is ignored. Keeping ``w = 1``
     leaves ``m`` as a free per-point dimmer that trades against the albedo and the photon
     intensity: measured on sphere_diffuse, held-out PBR 46.0 dB but aligned albedo PSNR 6.7 dB
-    (red albedo saturated at 1, metallic spread over [0, 1]). Shapes: ``albedo [..., 3]``,
-    ``metallic [...]`` or ``[..., 1]`` -> same shapes.
+    (red albedo saturated at 1, metallic spread over [0, 1]).
+
+    The roughness becomes ``DROPPED_LOBE_ROUGHNESS``: a glTF dielectric always has its
+    ``F0 = 0.04`` lobe, and the roughness the network held at the drop stops learning there (it
+    no longer shades anything), so a value frozen low would draw needle highlights the fit never
+    had (sphere_diffuse with global emitters: roughness 0.05 at the drop, bench/RESULTS.md v56);
+    the widest lobe is the nearest glTF has to "no lobe". (The ``paper`` BSDF's Disney diffuse
+    reads the roughness; an asset is shaded with the glTF BSDF, whose diffuse does not.)
+    Shapes: ``albedo [..., 3]``, ``roughness`` and ``metallic [...]`` or ``[..., 1]`` -> same shapes.
     """
     m = metallic if metallic.dim() == albedo.dim() else metallic[..., None]
-    return albedo * (1.0 - weight * m), torch.zeros_like(metallic)
+    return albedo * (1.0 - weight * m), torch.full_like(roughness, DROPPED_LOBE_ROUGHNESS), torch.zeros_like(metallic)
+
+
+DROPPED_LOBE_ROUGHNESS = 1.0
+"""The roughness a lobe-dropped surface carries (:func:`diffuse_only_material`)."""

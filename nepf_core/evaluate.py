@@ -53,10 +53,10 @@ def render_view(model, sampler: PixelSampler, k: int, cfg: RenderConfig, *, stri
             if out.background is not None:
                 pbr = pbr + (1 - alpha) * out.background
             s = out.surface
-            albedo, metal = s.albedo, s.metallic
-            if not shading.specular:  # lobe dropped: shaded as a dielectric diffuse (metallic 0)
-                albedo, metal = diffuse_only_material(albedo, metal, shading.diffuse_metal_weight)
-            vals = {"pbr": pbr, "radiance": out.rgb_r, "albedo": albedo, "roughness": s.roughness[:, None],
+            albedo, rough, metal = s.albedo, s.roughness, s.metallic
+            if not shading.specular:  # lobe dropped: shaded as a dielectric diffuse (metallic 0, roughness 1)
+                albedo, rough, metal = diffuse_only_material(albedo, rough, metal, shading.diffuse_metal_weight)
+            vals = {"pbr": pbr, "radiance": out.rgb_r, "albedo": albedo, "roughness": rough[:, None],
                     "metallic": metal[:, None], "normal": s.normal, "light_dir": s.light_dir,
                     "light_intensity": s.intensity[:, None], "alpha": alpha, "depth": out.depth[:, None]}
             for c in CHANNELS:

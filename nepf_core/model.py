@@ -132,7 +132,7 @@ class ModelFieldQuery:
         albedo, rough, metal = self._chunks(self.model.query_material, x, n)
         if self.shading is not None and not self.shading.specular:
             from nepf_core.bsdf import diffuse_only_material
-            albedo, metal = diffuse_only_material(albedo, metal, self.shading.diffuse_metal_weight)
+            albedo, rough, metal = diffuse_only_material(albedo, rough, metal, self.shading.diffuse_metal_weight)
         return albedo, rough, metal
 
     def light(self, x: Tensor, n: Tensor):

@@ -138,14 +138,15 @@ def test_without_the_lobe_metallic_no_longer_changes_the_shading():
     assert torch.allclose(a.rgb_surf, ref, atol=1e-6)
     c, e = surf_rgb(0.1, True), surf_rgb(0.9, True)
     assert not torch.allclose(c.rgb_surf, e.rgb_surf)
-    albedo, metal = diffuse_only_material(s.albedo, torch.full((64,), 0.7))
+    albedo, rough, metal = diffuse_only_material(s.albedo, s.roughness, torch.full((64,), 0.7))
     assert torch.equal(albedo, s.albedo) and torch.all(metal == 0) and metal.shape == (64,)
+    assert torch.all(rough == 1.0) and rough.shape == s.roughness.shape
     # mid-fade: (1 - w m) f_d(c) + w f_s. Its diffuse part is the diffuse of ((1 - w m) c,
     # metallic 0); linear in w, so at w = 0.5 it is the mean of the lobe-on image (w = 1,
     # (1 - m) f_d + f_s) and the dielectric diffuse (w = 0, f_d)
     fade["w"] = 0.5
     h = surf_rgb(0.9, False)
-    c2, m2 = diffuse_only_material(h.surface.albedo, torch.full((64,), 0.9), 0.5)
+    c2, _, m2 = diffuse_only_material(h.surface.albedo, h.surface.roughness, torch.full((64,), 0.9), 0.5)
     ref2 = bsdf_eval(h.surface.normal, h.surface.light_dir, -d, c2, h.surface.roughness[:, None],
                      m2[:, None], specular=False) * h.surface.intensity[:, None] * \
         (h.surface.normal * h.surface.light_dir).sum(-1, keepdim=True).clamp_min(0)
@@ -171,8 +172,8 @@ def test_diffuse_only_material_renders_the_same_as_the_faded_diffuse(lambertian,
     n, l, v = (unit(torch.randn(N, 3, generator=g)) for _ in range(3))
     c = torch.rand(N, 3, generator=g)
     r, m = torch.rand(N, 1, generator=g), torch.rand(N, 1, generator=g)
-    c2, m2 = diffuse_only_material(c, m, w)
-    assert torch.all(m2 == 0) and m2.shape == m.shape
+    c2, r2, m2 = diffuse_only_material(c, r, m, w)
+    assert torch.all(m2 == 0) and m2.shape == m.shape and torch.all(r2 == 1) and r2.shape == r.shape
     f1 = bsdf_eval(n, l, v, c, r, w * m, lambertian=lambertian, specular=False)
     f2 = bsdf_eval(n, l, v, c2, r, m2, lambertian=lambertian, specular=False)
     assert torch.allclose(f1, f2, atol=1e-7, rtol=1e-5)

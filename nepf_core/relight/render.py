@@ -40,10 +40,10 @@ def model_surfaces(model, render_cfg, shading) -> SurfaceFn:
     def surfaces(rays: RayBatch) -> tuple[SurfaceSamples, Tensor]:
         out = render_rays(model, rays, render_cfg, train=False, shading=shading)
         s = out.surface
-        albedo, metal = s.albedo.detach(), s.metallic.detach()
+        albedo, rough, metal = s.albedo.detach(), s.roughness.detach(), s.metallic.detach()
         if not shading.specular:
-            albedo, metal = diffuse_only_material(albedo, metal, shading.diffuse_metal_weight)
-        return (SurfaceSamples(s.x.detach(), s.normal.detach(), rays.directions, albedo, s.roughness.detach(), metal),
+            albedo, rough, metal = diffuse_only_material(albedo, rough, metal, shading.diffuse_metal_weight)
+        return (SurfaceSamples(s.x.detach(), s.normal.detach(), rays.directions, albedo, rough, metal),
                 out.weight_sum.detach().clamp(0.0, 1.0))
     return surfaces
 
