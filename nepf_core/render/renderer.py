@@ -183,10 +183,12 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     normals = sw.grad / sw.grad_norm.clamp_min(1e-8)[:, None]
     flat_max = sw.flat_max
     unlit_ray = rays.unlit if (train and rays.unlit is not None) else None
+    trace = getattr(model.photon, "trace_visibility", None)
+    ray_vis = trace(model.query_sdf, sw.pts[flat_max].detach(), normals[flat_max].detach()) if trace else None
 
     sel = shade_samples(model, cfg, shading, sw, normals, selected_samples(sw.weights, flat_max,
                                                                            cfg.head_weight_threshold),
-                        unlit_ray, train=train)
+                        unlit_ray, train=train, ray_visibility=ray_vis)
     rad_full = sw.pts.new_zeros(P, 3).index_copy(0, sel.index, sel.radiance)
     pbr_full = sw.pts.new_zeros(P, 3).index_copy(0, sel.index, sel.pbr)
     w3 = sw.weights[..., None]
@@ -208,10 +210,11 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     if cfg.surface_refine and cfg.alpha_mode == "sample":
         xr, nr, fr, xj, fj, nj = refine_surface(model, o, d, sw.z, sw.sdf, sw.idx_max, jitter_sigma=jitter_sigma,
                                                 jitter_normals=request.jitter_normals)
-        p = shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray, logits=train)
+        p = shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray, logits=train, visibility=ray_vis)
         rgb_surf = p.pbr
         surface = Surface(x=xr, normal=nr, direction=d, light_dir=p.light_dir, intensity=p.intensity,
-                          albedo=p.albedo, roughness=p.roughness, metallic=p.metallic, material_logits=p.logits)
+                          albedo=p.albedo, roughness=p.roughness, metallic=p.metallic, material_logits=p.logits,
+                          lights=p.lights)
     if jitter_sigma > 0:
         surface.jitter = jittered_material(model, surface, jitter_sigma, amp=cfg.amp_heads, xj=xj, fj=fj, nj=nj)
     lobe = lobe_split(surface, rgb_surf, lambertian=cfg.lambertian, kind=cfg.bsdf_kind) if request.lobe_split else None

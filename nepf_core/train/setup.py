@@ -27,12 +27,18 @@ def param_groups(model: NePFModel, lr: float, lr_grid: float) -> list[dict]:
     """Two groups: grid-encoding tables (``lr_grid``) and everything else (``lr``); each keeps its
     ``base_lr`` for the schedule."""
     tables = {id(m.table) for m in model.modules() if isinstance(m, MultiResGrid)}
+    scaled = [m for m in model.modules() if getattr(m, "lr_scale", None)]
+    own = {id(p) for m in scaled for p in m.parameters(recurse=False)}
     grid, other = [], []
     for p in model.parameters():
-        (grid if id(p) in tables else other).append(p)
+        if id(p) not in own:
+            (grid if id(p) in tables else other).append(p)
     groups = [{"params": other, "lr": lr, "base_lr": lr}]
     if grid:
         groups.append({"params": grid, "lr": lr_grid, "base_lr": lr_grid})
+    for m in scaled:   # a module that names an lr_scale (global emitters) learns at that times lr
+        groups.append({"params": list(m.parameters(recurse=False)), "lr": lr * m.lr_scale,
+                       "base_lr": lr * m.lr_scale})
     return groups
 
 
@@ -75,6 +81,15 @@ def init_radiance_to_data(model: NePFModel, scene: Scene) -> None:
     p = torch.as_tensor(total / count, dtype=torch.float32).clamp(1e-3, 0.999)
     with torch.no_grad():
         last.bias.copy_(torch.log(p / (1.0 - p)).to(last.bias))
+
+
+def place_lights(model: NePFModel, scene: Scene) -> None:
+    """Start global emitters at the scene's camera centres
+    (:meth:`nepf_core.fields.emitters.TracedEmitters.place`); the photon network needs no
+    placing. A resumed run overwrites this with its checkpoint."""
+    place = getattr(model.photon, "place", None)
+    if place is not None:
+        place(torch.as_tensor(np.asarray(scene.c2w)[:, :3, 3], dtype=torch.float32))
 
 
 def unlit_pixels(scene: Scene, stopgrad: bool, rel_threshold: float) -> tuple[float | None, Decision | None]:
