@@ -31,6 +31,8 @@ PLACE_FACTOR = 1.5
 """Emitters start at the chosen camera centres times this (outside the cameras' sphere)."""
 MIN_DISTANCE = 1e-2
 """``|p_k - x|`` floor: an emitter that wanders onto the surface gives a bounded irradiance."""
+SECONDARY_SHARE = 0.01
+"""The share of the starting irradiance each emitter after the first gets."""
 LR_SCALE = 10.0
 """The emitters' positions and log-intensities learn at this times the heads' ``lr``."""
 
@@ -60,11 +62,16 @@ class TracedEmitters(nn.Module):
     @torch.no_grad()
     def set_init_intensity(self, value: float) -> None:
         """``I_k`` such that the origin, seeing every emitter, gets ``sum_k I_k / |p_k|^2 = value``
-        (the photon network's starting intensity), shared equally."""
+        (the photon network's starting intensity): the first emitter ``1 - (K - 1) s`` of it, each
+        other one ``s = SECONDARY_SHARE``, so that a second light grows only where the data shows
+        one (on a one-lamp scene an equal share lights the dark side, and the material, not the
+        emitter, took the blame: bench/RESULTS.md v56)."""
         if not (math.isfinite(value) and value > 0):
             raise ValueError(f"initial light intensity must be finite and > 0, got {value}")
         d2 = (self.positions ** 2).sum(-1).clamp_min(MIN_DISTANCE ** 2)
-        self.log_intensity.copy_(torch.log(value * d2 / self.count))
+        share = torch.full_like(d2, SECONDARY_SHARE)
+        share[0] = 1.0 - SECONDARY_SHARE * (self.count - 1)
+        self.log_intensity.copy_(torch.log(value * d2 * share))
 
     @torch.no_grad()
     def place(self, camera_centres: Tensor) -> None:

@@ -85,11 +85,27 @@ def init_radiance_to_data(model: NePFModel, scene: Scene) -> None:
 
 def place_lights(model: NePFModel, scene: Scene) -> None:
     """Start global emitters at the scene's camera centres
-    (:meth:`nepf_core.fields.emitters.TracedEmitters.place`); the photon network needs no
-    placing. A resumed run overwrites this with its checkpoint."""
+    (:meth:`nepf_core.fields.emitters.TracedEmitters.place`) and at the irradiance the images ask
+    for: ``E0 = pi q99(max_c L_gt) / EMITTER_START_ALBEDO`` at the origin, so the brightest
+    foreground pixels need that albedo under head-on light. The photon network needs no placing.
+    A resumed run overwrites this with its checkpoint.
+
+    Why from the data: the images fix only albedo x irradiance. The photon network's ``I(x)`` is
+    free per point and climbs where a surface needs more light; a global emitter started too dim
+    sends every albedo into the top of its sigmoid in the first steps, and from there the texture
+    cannot come back (spot_textured at 1,000 steps: albedo 0.94 on its black spots, v56)."""
     place = getattr(model.photon, "place", None)
-    if place is not None:
-        place(torch.as_tensor(np.asarray(scene.c2w)[:, :3, 3], dtype=torch.float32))
+    if place is None:
+        return
+    place(torch.as_tensor(np.asarray(scene.c2w)[:, :3, 3], dtype=torch.float32))
+    peaks = foreground_peaks(scene.images, scene.masks)
+    step = max(1, peaks.size // 2_000_000)  # a subsample is plenty for a quantile
+    q99 = float(np.quantile(peaks[::step], 0.99)) if peaks.size else 0.0
+    model.photon.set_init_intensity(float(np.pi * max(q99, 1e-3) / EMITTER_START_ALBEDO))
+
+
+EMITTER_START_ALBEDO = 0.5
+"""The albedo the brightest foreground pixels need under the emitters' starting light."""
 
 
 def unlit_pixels(scene: Scene, stopgrad: bool, rel_threshold: float) -> tuple[float | None, Decision | None]:
