@@ -137,3 +137,27 @@ def test_a_point_light_is_recovered_from_a_lambertian_sphere():
     p = em.positions.detach()[0]
     angle = math.degrees(math.acos(float(torch.nn.functional.cosine_similarity(p, p_true, dim=0))))
     assert angle < 2.0
+
+
+def test_secondary_emitters_start_at_their_share():
+    from nepf_core.fields.emitters import SECONDARY_SHARE
+    em = TracedEmitters(3)
+    em.set_init_intensity(4.0)
+    at_origin = em.log_intensity.exp() / (em.positions ** 2).sum(-1)
+    assert torch.allclose(at_origin, torch.tensor([4.0 * (1 - 2 * SECONDARY_SHARE), 4.0 * SECONDARY_SHARE,
+                                                   4.0 * SECONDARY_SHARE]), rtol=1e-5)
+    with pytest.raises(ValueError, match="finite and > 0"):
+        em.set_init_intensity(0.0)
+
+
+def test_place_lights_starts_the_emitters_from_the_images(small_scene):
+    from nepf_core.rays import foreground_peaks
+    from nepf_core.train.setup import EMITTER_START_ALBEDO, place_lights
+    model = NePFModel(ModelConfig(sdf_kind="grid", light="emitters", emitters=2))
+    place_lights(model, small_scene)
+    q99 = float(torch.quantile(torch.as_tensor(foreground_peaks(small_scene.images, small_scene.masks)), 0.99))
+    at_origin = (model.photon.log_intensity.exp() / (model.photon.positions ** 2).sum(-1)).sum().detach()
+    assert float(at_origin) == pytest.approx(math.pi * q99 / EMITTER_START_ALBEDO, rel=1e-4)
+    centres = torch.as_tensor(small_scene.c2w[:, :3, 3])
+    d = torch.cdist(model.photon.positions.detach() / PLACE_FACTOR, centres.float()).min(-1).values
+    assert torch.all(d < 1e-5)   # each emitter starts at a camera centre, pushed out
