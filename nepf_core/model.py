@@ -27,11 +27,6 @@ class ModelConfig:
     """Outgoing radiance network (paper: 8x256 SIREN)."""
     photon: HeadConfig = field(default_factory=lambda: HeadConfig(activation="relu"))
     """Photon network (paper: 8x256 ReLU)."""
-    light: str = "photon"
-    """``photon``: the paper's per-point light; ``emitters``: ``emitters`` global point emitters
-    with shadows traced through the SDF (:mod:`nepf_core.fields.emitters`)."""
-    emitters: int = 2
-    """``K``, the number of emitters (``light="emitters"``)."""
     material: HeadConfig = field(default_factory=lambda: HeadConfig(activation="siren"))
     """Material network (paper: 8x256 SIREN)."""
     init_variance: float = 0.3
@@ -60,21 +55,6 @@ def build_sdf(cfg: ModelConfig) -> nn.Module:
     raise ValueError(f"unknown sdf_kind {cfg.sdf_kind!r} (mlp|grid)")
 
 
-def build_light(cfg: ModelConfig, feature_dim: int) -> nn.Module:
-    """The light model: a :class:`PhotonField` or a
-    :class:`~nepf_core.fields.emitters.TracedEmitters` (both ``forward(x, n, feature) ->
-    (light_dir [N, 3], intensity [N])``)."""
-    if cfg.light == "photon":
-        return PhotonField(cfg.photon, feature_dim)
-    if cfg.light in ("emitters", "emitters_residual"):
-        from nepf_core.fields.emitters import RESIDUAL_INIT_INTENSITY, TracedEmitters
-        residual = None
-        if cfg.light == "emitters_residual":
-            residual = PhotonField(cfg.photon, feature_dim, init_intensity=RESIDUAL_INIT_INTENSITY)
-        return TracedEmitters(cfg.emitters, residual=residual)
-    raise ValueError(f"unknown light model {cfg.light!r} (photon|emitters)")
-
-
 class NePFModel(nn.Module):
     """All fields of one NePF scene (normalised frame)."""
 
@@ -84,7 +64,7 @@ class NePFModel(nn.Module):
         self.sdf = build_sdf(cfg)
         F = self.sdf.feature_dim
         self.radiance = RadianceField(cfg.radiance, F)
-        self.photon = build_light(cfg, F)
+        self.photon = PhotonField(cfg.photon, F)
         self.material = MaterialField(cfg.material, F)
         self.deviation = Deviation(cfg.init_variance)
         self.background = BackgroundVolume(cfg.background_volume) if cfg.background else None
