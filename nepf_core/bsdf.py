@@ -326,7 +326,9 @@ def diffuse_only_material(albedo: Tensor, roughness: Tensor, metallic: Tensor,
     no longer shades anything), so a value frozen low would draw needle highlights the fit never
     had (sphere_diffuse with global emitters: roughness 0.05 at the drop, bench/RESULTS.md v56);
     the widest lobe is the nearest glTF has to "no lobe". (The ``paper`` BSDF's Disney diffuse
-    reads the roughness; an asset is shaded with the glTF BSDF, whose diffuse does not.)
+    reads the roughness, so ``nepf relight``, which shades a lobe-dropped run with its own BSDF
+    and no lobe, keeps the network's; an exported asset is shaded with the glTF BSDF, whose
+    diffuse does not read it.)
     Shapes: ``albedo [..., 3]``, ``roughness`` and ``metallic [...]`` or ``[..., 1]`` -> same shapes.
     """
     m = metallic if metallic.dim() == albedo.dim() else metallic[..., None]

@@ -42,7 +42,8 @@ def model_surfaces(model, render_cfg, shading) -> SurfaceFn:
         s = out.surface
         albedo, rough, metal = s.albedo.detach(), s.roughness.detach(), s.metallic.detach()
         if not shading.specular:
-            albedo, rough, metal = diffuse_only_material(albedo, rough, metal, shading.diffuse_metal_weight)
+            # relit without a lobe, the roughness reaches only the paper kind's Disney diffuse: keep the run's
+            albedo, _, metal = diffuse_only_material(albedo, rough, metal, shading.diffuse_metal_weight)
         return (SurfaceSamples(s.x.detach(), s.normal.detach(), rays.directions, albedo, rough, metal),
                 out.weight_sum.detach().clamp(0.0, 1.0))
     return surfaces
