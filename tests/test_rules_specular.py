@@ -246,7 +246,8 @@ def test_fit_that_drops_the_lobe_exports_the_diffuse_equivalent_material(tmp_pat
     """End to end: a fit whose radiance counts as flat (threshold raised to 1) drops the lobe;
     config.json keeps what was asked (lobe on), ``load_model`` returns the run state of the
     checkpoint, and the export's material query returns what the surface was shaded with:
-    metallic 0, albedo (1 - w m) c with the fade weight ``w`` of the run's last step."""
+    metallic 0, roughness 1, albedo (1 - w m) c with the fade weight ``w`` of the run's last step;
+    ``nepf relight``'s surfaces keep the network's roughness (shaded without a lobe, as the run)."""
     from nepf_core.data.detect import load_scene
     from nepf_core.data.synth import make_scene
     from nepf_core.model import ModelFieldQuery
@@ -289,3 +290,13 @@ def test_fit_that_drops_the_lobe_exports_the_diffuse_equivalent_material(tmp_pat
     m0c = m0 if m0.dim() == 2 else m0[:, None]
     assert torch.allclose(a1, a0 * (1 - w * m0c))
     assert float((r0 - 1).abs().max()) > 1e-3 and torch.all(r1 == 1.0)   # the widest glTF lobe, not r0
+    # nepf relight shades the run's own BSDF without a lobe: it keeps the network's roughness
+    from nepf_core.rays import RayBatch
+    from nepf_core.relight.render import model_surfaces
+    from nepf_core.render.renderer import render_rays
+    o = torch.tensor([[0.0, 0.0, 3.0]]).repeat(16, 1)
+    d = torch.nn.functional.normalize(torch.randn(16, 3) * 0.1 + torch.tensor([0.0, 0.0, -1.0]), dim=-1)
+    rays = RayBatch(o, d)
+    samples, _ = model_surfaces(model, cfg2.render, shading)(rays)
+    own = render_rays(model, rays, cfg2.render, train=False, shading=shading).surface
+    assert torch.equal(samples.roughness, own.roughness.detach()) and torch.all(samples.metallic == 0)
