@@ -53,9 +53,6 @@ class TrainConfig:
     """A target pixel is unlit when ``max_c L_gt < unlit_rel_threshold * q99(foreground)``
     (:func:`nepf_core.rays.unlit_threshold`): such pixels do not train the albedo
     (``render.unlit_albedo_stopgrad``) and are left out of the lit-pixel metrics."""
-    unlit_reference_quantile: float = 0.99
-    """The foreground quantile of ``max_c L`` that ``unlit_rel_threshold`` is relative to (training only;
-    the albedo-lit metric keeps 0.99)."""
     max_nonfinite_steps: int = 50
     """Fail the run after this many skipped (non-finite) steps."""
     grad_clip: float = 0.0

@@ -64,7 +64,7 @@ def foreground_peaks(images: np.ndarray, masks: np.ndarray | None) -> np.ndarray
     return peak[masks > 0.5] if masks is not None else peak.reshape(-1)
 
 
-def unlit_threshold(images: np.ndarray, masks: np.ndarray | None, rel: float, quantile: float = 0.99) -> float:
+def unlit_threshold(images: np.ndarray, masks: np.ndarray | None, rel: float) -> float:
     """Linear value under which a pixel counts as unlit: ``rel * q99(max_c I)`` over the
     foreground (every pixel without masks). Relative, so a uniformly dark capture (8-bit
     values < 8) still has lit pixels. ``images [N, H, W, 3]`` linear, ``masks [N, H, W]``."""
@@ -72,7 +72,7 @@ def unlit_threshold(images: np.ndarray, masks: np.ndarray | None, rel: float, qu
     if vals.size == 0:
         return 0.0
     step = max(1, vals.size // 2_000_000)  # a subsample is plenty for a quantile
-    return float(rel * np.quantile(vals[::step], quantile))
+    return float(rel * np.quantile(vals[::step], 0.99))
 
 
 def rays_from_pixels(K_inv: Tensor, c2w: Tensor, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:

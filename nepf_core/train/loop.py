@@ -127,8 +127,7 @@ class TrainingRun:
         # where the metal evidence said metal, the unseen-lobe prior is lifted (train/metal_record.py)
         self.metal_record = (MetalRecord(dev) if cfg.loss.w_material_evidence > 0 and cfg.loss.w_metallic_unseen > 0
                              else None)
-        self.unlit_thr, decision = unlit_pixels(scene, cfg.render.unlit_albedo_stopgrad, tc.unlit_rel_threshold,
-                                                    tc.unlit_reference_quantile)
+        self.unlit_thr, decision = unlit_pixels(scene, cfg.render.unlit_albedo_stopgrad, tc.unlit_rel_threshold)
         self.adaptivity.log_decision(decision)
         self.adaptivity.on_model(ModelContext(self.model, scene))
         # the render settings in effect (bf16 heads only on CUDA); evaluations use the same

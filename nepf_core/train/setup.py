@@ -77,13 +77,13 @@ def init_radiance_to_data(model: NePFModel, scene: Scene) -> None:
         last.bias.copy_(torch.log(p / (1.0 - p)).to(last.bias))
 
 
-def unlit_pixels(scene: Scene, stopgrad: bool, rel_threshold: float, quantile: float = 0.99) -> tuple[float | None, Decision | None]:
+def unlit_pixels(scene: Scene, stopgrad: bool, rel_threshold: float) -> tuple[float | None, Decision | None]:
     """``(threshold, decision)`` for ``render.unlit_albedo_stopgrad`` (``stopgrad``): a training
     pixel is unlit when ``max_c L_gt < rel_threshold * q99`` (:func:`nepf_core.rays.unlit_threshold`);
     ``(None, None)`` when the switch is off."""
     if not stopgrad:
         return None, None
-    thr = unlit_threshold(scene.images, scene.masks, rel_threshold, quantile)
+    thr = unlit_threshold(scene.images, scene.masks, rel_threshold)
     fg = foreground_peaks(scene.images, scene.masks)
     frac = float((fg < thr).mean()) if fg.size else 0.0
     return thr, Decision("unlit_albedo_stopgrad", {"threshold_linear": thr, "unlit_fraction": round(frac, 4)},
