@@ -80,10 +80,6 @@ class RenderConfig:
     photon field (direction, intensity) and geometry may explain the darkness. A pixel that
     received no light carries no information on the albedo; letting its error reach the albedo
     drives the albedo to 0 in shadows (docs/FAST.md, "Albedo in unlit regions")."""
-    unlit_needs_dark_light: bool = False
-    """With ``unlit_albedo_stopgrad``: a dark pixel counts as unlit only where the light model also
-    says little light arrives, ``I (n . l)^+ < UNLIT_IRRADIANCE_SHARE * q90`` of the call's points
-    (:func:`nepf_core.render.shading.light_confirms_unlit`): a dark albedo under light is not a shadow."""
     albedo_smooth_sigma: float = 0.0
     """Training only, > 0: also query the material network at ``x* + N(0, sigma^2 I)`` next
     to each surface point (:attr:`Surface.jitter`) for the smoothness priors

@@ -59,28 +59,6 @@ class ShadedSamples(PointShading):
     radiance_logits: Tensor | None = None
 
 
-UNLIT_IRRADIANCE_SHARE = 0.02
-"""A point whose learned irradiance ``I (n . l)^+`` is under this share of the call's 90th percentile
-receives (as the light model has it) no light."""
-
-
-def light_confirms_unlit(unlit: Tensor, light_dir: Tensor, intensity: Tensor, ns: Tensor) -> Tensor:
-    """``unlit [N]`` (the pixel is dark) kept only where the learned light agrees:
-    ``E = I (n . l)^+ < UNLIT_IRRADIANCE_SHARE * q90(E)`` over the ``N`` points (detached).
-
-    A dark pixel is a shadow or a dark albedo under light; the pixel alone cannot tell, and a black
-    texture spot called unlit never trains its albedo (the smoothness prior fills it with its
-    neighbours' colour). The light model's irradiance is smooth in ``x`` (the photon network reads
-    two frequencies of ``x`` and the normal): it carries the shading, not a texture.
-    Shapes: ``unlit [N]`` bool, ``light_dir, ns [N, 3]``, ``intensity [N]`` -> ``[N]`` bool."""
-    with torch.no_grad():
-        e = intensity.reshape(-1) * (light_dir * ns).sum(-1).clamp_min(0.0)
-        if e.numel() == 0:
-            return unlit
-        ref = torch.quantile(e.float(), 0.9)
-        return unlit & (e < UNLIT_IRRADIANCE_SHARE * ref)
-
-
 def _autocast(cfg, device: torch.device):
     return torch.autocast(device_type=device.type, dtype=torch.bfloat16,
                           enabled=cfg.amp_heads and device.type == "cuda")
@@ -103,8 +81,6 @@ def shade_points(model, cfg, shading: Shading, xs: Tensor, vs: Tensor, ns: Tenso
     albedo, rough, metal = albedo.float(), rough.float(), metal.float()
     albedo_shade = albedo
     if cfg.unlit_albedo_stopgrad and unlit is not None:
-        if cfg.unlit_needs_dark_light:
-            unlit = light_confirms_unlit(unlit, light_dir, intensity, ns)
         albedo_shade = torch.where(unlit[:, None], albedo.detach(), albedo)
     if not shading.specular:  # lobe dropped: (1 - w m) f_d(c) + w f_s, w fading to 0 (a dielectric diffuse)
         pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
