@@ -8,7 +8,9 @@ median direction error on the lit foreground (:func:`bench.shading_report.shadin
 albedos), and the oracle (:func:`bench.oracle.oracle_render`) with the same BSDF kind, so that the gap reads as "ours
 against the best our BSDF can do", with what each of the run's channels costs alone
 (``relight_cost_db``: the oracle's PSNR minus the oracle's with that channel from the run,
-:mod:`bench.relight_attribution`).
+:mod:`bench.relight_attribution`), and the oracle restricted to what the training light shows
+(``relight_observable_psnr``, :mod:`bench.observable_oracle`): the part of the gap above it no
+method that reads the material from lit pixels can close.
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-KEYS = ("relight_psnr", "relight_oracle_psnr", "relight_scale", "relight_bsdf", "albedo_psnr", "albedo_psnr_lit",
+KEYS = ("relight_psnr", "relight_oracle_psnr", "relight_observable_psnr", "relight_scale", "relight_bsdf", "albedo_psnr", "albedo_psnr_lit",
         "roughness_mae", "metallic_mae", "normal_mae_deg", "light_dir_error_deg_median", "relight_cost_db")
 """What :func:`relight_metrics` reports (plus ``seconds``)."""
 
@@ -46,6 +48,8 @@ def relight_metrics(run_dir, scene_dir, device: str = "cpu") -> dict:
     res["relight_oracle_psnr"] = rows["oracle"]
     res["relight_cost_db"] = {k: rows["oracle"] - v for k, v in rows.items() if k in CHANNELS}
     res["relight_cost_db"]["missed_pixels"] = rows["missed_pixels"]
+    from bench.observable_oracle import observable_oracle
+    res["relight_observable_psnr"] = observable_oracle(scene_dir, res["relight_bsdf"])["observable"]
     from bench.shading_report import shading_rows
     res["light_dir_error_deg_median"] = shading_rows(Path(run_dir), Path(scene_dir), 0.0)["light_dir_error_deg_median"]
     res["seconds"] = time.perf_counter() - t0

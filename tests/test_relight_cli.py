@@ -150,6 +150,7 @@ def test_bench_child_scores_and_table(scene, run, tmp_path):
     assert has_relight_truth(sc)
     ev = relight_metrics(run, sc)
     assert ev["relight_oracle_psnr"] == pytest.approx(100.0)
+    assert np.isfinite(ev["relight_observable_psnr"]) and ev["relight_observable_psnr"] <= 100.0  # tested in test_observable_oracle
     assert ev["relight_bsdf"] == "paper" and np.isfinite(ev["relight_psnr"]) and ev["relight_psnr"] < 100
     relit = np.load(run / "relight_eval" / "relight" / "arrays.npz")["rgb_linear"]
     assert ev["relight_psnr"] == pytest.approx(relight_psnr(relit, gt_rgb, gt_alpha)[0], abs=1e-9)
