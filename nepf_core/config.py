@@ -111,6 +111,9 @@ class NePFConfig:
         if self.loss.w_material_evidence > 0 and self.render.bsdf_kind != "gltf":
             raise ValueError("loss.w_material_evidence > 0 needs render.bsdf_kind = \"gltf\" (the evidence fits "
                              "the glTF BSDF); set it, or set the weight to 0")
+        if self.loss.w_albedo_fill > 0 and self.model.light != "emitters":
+            raise ValueError("loss.w_albedo_fill > 0 needs model.light = \"emitters\" (the prior finds the points no "
+                             "light reaches by the traced shadows); set it, or set the weight to 0")
 
     @staticmethod
     def from_dict(d: dict) -> "NePFConfig":
@@ -184,10 +187,14 @@ def fast() -> NePFConfig:
     A second difference of the SDF normal across the surface (``w_normal_smooth``) smooths the
     grid's cell-scale normal noise, which a highlight shows, without flattening true curvature
     (docs/FAST.md, "Normals: a second difference of the normal at the surface").
-    Of the paper's light-variance terms only the intensity one (``lambda3``) stays: the two
-    direction terms pull the light directions' spread toward the normals', which tilts ``l``
-    toward ``n`` and moves the shading into the albedo (docs/FAST.md, "The light field's direction
-    terms"). Without masks, the points triangulated in front of the support plane pull the SDF's
+    The light is not the paper's photon network but two global point emitters whose shadows are
+    traced through the SDF (``model.light = "emitters"``, :mod:`nepf_core.fields.emitters`): every
+    point's light must come from one place, so texture cannot hide in per-point light directions,
+    and a dark pixel under a traced light trains the albedo (a black texture) while one in a
+    traced shadow does not; where no light reaches, the albedo is pulled weakly toward the lit
+    mean (``w_albedo_fill``; docs/FAST.md, "The light model"). The paper's light-variance terms
+    are off (``w_light = 0``): with traced shadows the irradiance is 0 or ``E``, and
+    ``|var x - var I|`` is lowered by dimming the emitters (bench/RESULTS.md v56). Without masks, the points triangulated in front of the support plane pull the SDF's
     zero level set onto them (``w_surface_points``, Geo-NeuS; docs/ARCHITECTURE.md, the object
     frame). The colour networks' logits stay within ±9 (``w_colour_range``): a black background
     without masks otherwise saturates them for good (docs/FAST.md, "Colours out of saturation").
@@ -195,16 +202,17 @@ def fast() -> NePFConfig:
     head = HeadConfig(width=64, depth=2, activation="relu", n_freqs_v=4)
     return NePFConfig(
         name="fast",
-        model=ModelConfig(sdf_kind="grid", radiance=head, photon=HeadConfig(width=64, depth=2, n_freqs_x=2,
-                                                                           use_feature=False),
+        model=ModelConfig(sdf_kind="grid", radiance=head, light="emitters",
+                          photon=HeadConfig(width=64, depth=2, n_freqs_x=2, use_feature=False),
                           material=HeadConfig(width=64, depth=2), occupancy_resolution=64),
         render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1,
                             normals="fd", alpha_mode="sample", head_weight_threshold=1e-4,
                             eikonal_fraction=0.1, unlit_albedo_stopgrad=True, albedo_smooth_sigma=0.02,
                             surface_refine=True, bsdf_kind="gltf"),
-        loss=LossConfig(w_hessian=0.0, w_surface_points=0.1, w_albedo_smooth=2e-4, w_albedo_flat=3e-6, w_brdf_smooth=2e-4,
-                        w_material_range=1e-4, w_colour_range=1e-2, w_metallic_unseen=1e-4,
-                        w_material_evidence=1e-3, w_normal_smooth=0.025, lambda4=0.0, lambda5=0.0),
+        loss=LossConfig(w_hessian=0.0, w_surface_points=0.1, w_albedo_smooth=2e-4, w_albedo_flat=3e-6,
+                        w_albedo_fill=2e-5, w_brdf_smooth=2e-4, w_material_range=1e-4, w_colour_range=1e-2,
+                        w_metallic_unseen=1e-4, w_material_evidence=1e-3, w_normal_smooth=0.025, w_light=0.0,
+                        lambda4=0.0, lambda5=0.0),
         train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,
                           anneal_end=2000, log_every=20, sync_every=500, checkpoint_every=1000,
                           eval_every_s=60.0, eval_stride=1, ema_decay=0.995, adaptive=True),

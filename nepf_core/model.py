@@ -27,6 +27,11 @@ class ModelConfig:
     """Outgoing radiance network (paper: 8x256 SIREN)."""
     photon: HeadConfig = field(default_factory=lambda: HeadConfig(activation="relu"))
     """Photon network (paper: 8x256 ReLU)."""
+    light: str = "photon"
+    """``photon``: the paper's per-point light; ``emitters``: ``emitters`` global point emitters
+    with shadows traced through the SDF (:mod:`nepf_core.fields.emitters`)."""
+    emitters: int = 2
+    """``K``, the number of emitters (``light="emitters"``)."""
     material: HeadConfig = field(default_factory=lambda: HeadConfig(activation="siren"))
     """Material network (paper: 8x256 SIREN)."""
     init_variance: float = 0.3
@@ -55,6 +60,18 @@ def build_sdf(cfg: ModelConfig) -> nn.Module:
     raise ValueError(f"unknown sdf_kind {cfg.sdf_kind!r} (mlp|grid)")
 
 
+def build_light(cfg: ModelConfig, feature_dim: int) -> nn.Module:
+    """The light model: a :class:`PhotonField` or a
+    :class:`~nepf_core.fields.emitters.TracedEmitters` (both ``forward(x, n, feature) ->
+    (light_dir [N, 3], intensity [N])``)."""
+    if cfg.light == "photon":
+        return PhotonField(cfg.photon, feature_dim)
+    if cfg.light == "emitters":
+        from nepf_core.fields.emitters import TracedEmitters
+        return TracedEmitters(cfg.emitters)
+    raise ValueError(f"unknown light model {cfg.light!r} (photon|emitters)")
+
+
 class NePFModel(nn.Module):
     """All fields of one NePF scene (normalised frame)."""
 
@@ -64,7 +81,7 @@ class NePFModel(nn.Module):
         self.sdf = build_sdf(cfg)
         F = self.sdf.feature_dim
         self.radiance = RadianceField(cfg.radiance, F)
-        self.photon = PhotonField(cfg.photon, F)
+        self.photon = build_light(cfg, F)
         self.material = MaterialField(cfg.material, F)
         self.deviation = Deviation(cfg.init_variance)
         self.background = BackgroundVolume(cfg.background_volume) if cfg.background else None

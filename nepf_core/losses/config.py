@@ -46,6 +46,18 @@ class LossConfig:
     the colour terms' gradient on the albedo is larger, and that gradient carries the shading
     ``I (n.l) / pi`` and the sRGB slope: the weight must stay well under ``lambda2_vol`` times
     that slope, or the texture moves into the light (docs/FAST.md, "What fixed it")."""
+    w_albedo_fill: float = 0.0
+    """Where no light reaches, the albedo of the lit surface: ``mean_surf [shadowed] |c(x*) -
+    sg(mean_bright c)|`` (per channel, normalised by the surface rays), ``shadowed`` the surface
+    rays whose pixel is unlit and whose point is dark under the traced emitters, ``bright`` the lit
+    rays that are not (:func:`nepf_core.fields.emitters.dark_under_emitters`); needs
+    ``model.light = "emitters"``. No training pixel shows such a point's albedo, but a novel light
+    does: without this term the network extrapolates it from the lit side's trend, and a few
+    per cent of shading left in the lit albedo along ``n . l`` (a point light's distance is weakly
+    fixed by the images) becomes 5-12 % too dark an unlit half (sphere_diffuse, bench/RESULTS.md
+    v56, v58). The batch's mean is the least-informed guess and says nothing about texture; the
+    weight stays 10x under the smoothness prior's, because at its weight the pull flattened the
+    lit texture too (spot_textured's lit albedo 16.5 -> 12.5 dB, v58)."""
     w_brdf_smooth: float = 0.0
     """The smoothness prior of ``w_albedo_smooth`` for roughness and metallic:
     ``mean (|r(x*) - r(x* + eps)| + |m(x*) - m(x* + eps)|)``. With a smoothness prior on the albedo

@@ -3,6 +3,8 @@ range, and the metal terms.
 
     L_asm    = w_albedo_smooth * mean_surf | c(x*) - c(x* + e) |
     L_flat   = w_albedo_flat * mean_lit | Y(c) / sg(mean_lit Y(c)) - 1 |, Y = channel mean  (lobe off only)
+    L_fill   = w_albedo_fill * mean_surf [shadowed] | c(x*) - sg(mean_bright c) |
+               (shadowed: unlit pixel and dark under the traced emitters; bright: lit and not dark)
     L_bsm    = w_brdf_smooth * mean_surf (|r(x*) - r(x* + e)| + |m(x*) - m(x* + e)|)
     L_range  = w_material_range * mean_surf mean_k relu(|z_k| - z_max)   (z: material logits)
     L_unseen = w_metallic_unseen * mean_lit m (1 - s) (1 - share)
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 from torch import Tensor
 
+from nepf_core.fields.emitters import dark_under_emitters
 from nepf_core.losses.batch import LossBatch, logit_excess, mean_where, needs_input
 
 _JITTER = "render.albedo_smooth_sigma > 0 (a training render's Surface.jitter)"
@@ -36,6 +39,17 @@ def loss_albedo_flat(b: LossBatch) -> Tensor:
         return b.zero
     lum = b.out.surface.albedo[b.lit].mean(-1)
     return (lum / lum.detach().mean().clamp_min(1e-4) - 1.0).abs().mean()
+
+
+def loss_albedo_fill(b: LossBatch) -> Tensor:
+    s = b.out.surface
+    lights = needs_input(s.lights, "w_albedo_fill", 'model.light = "emitters" (the traced emitters\' irradiance)')
+    dark = dark_under_emitters(*lights, s.normal, among=b.on_surf)
+    shadowed, bright = b.on_surf & ~b.lit & dark, b.lit & ~dark
+    if not shadowed.any() or int(bright.sum()) < 2:
+        return b.zero
+    target = s.albedo[bright].detach().mean(0)
+    return (s.albedo[shadowed] - target).abs().mean(-1).sum() / b.on_surf.sum()
 
 
 def loss_brdf_smooth(b: LossBatch) -> Tensor:

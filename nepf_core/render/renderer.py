@@ -183,10 +183,11 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     normals = sw.grad / sw.grad_norm.clamp_min(1e-8)[:, None]
     flat_max = sw.flat_max
     unlit_ray = rays.unlit if (train and rays.unlit is not None) else None
+    ray_vis = ray_visibility(model, sw.pts[flat_max].detach(), normals[flat_max].detach(), weight_sum.detach())
 
     sel = shade_samples(model, cfg, shading, sw, normals, selected_samples(sw.weights, flat_max,
                                                                            cfg.head_weight_threshold),
-                        unlit_ray, train=train)
+                        unlit_ray, train=train, ray_visibility=ray_vis)
     rad_full = sw.pts.new_zeros(P, 3).index_copy(0, sel.index, sel.radiance)
     pbr_full = sw.pts.new_zeros(P, 3).index_copy(0, sel.index, sel.pbr)
     w3 = sw.weights[..., None]
@@ -208,10 +209,11 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     if cfg.surface_refine and cfg.alpha_mode == "sample":
         xr, nr, fr, xj, fj, nj = refine_surface(model, o, d, sw.z, sw.sdf, sw.idx_max, jitter_sigma=jitter_sigma,
                                                 jitter_normals=request.jitter_normals)
-        p = shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray, logits=train)
+        p = shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray, logits=train, visibility=ray_vis)
         rgb_surf = p.pbr
         surface = Surface(x=xr, normal=nr, direction=d, light_dir=p.light_dir, intensity=p.intensity,
-                          albedo=p.albedo, roughness=p.roughness, metallic=p.metallic, material_logits=p.logits)
+                          albedo=p.albedo, roughness=p.roughness, metallic=p.metallic, material_logits=p.logits,
+                          lights=p.lights)
     if jitter_sigma > 0:
         surface.jitter = jittered_material(model, surface, jitter_sigma, amp=cfg.amp_heads, xj=xj, fj=fj, nj=nj)
     lobe = lobe_split(surface, rgb_surf, lambertian=cfg.lambertian, kind=cfg.bsdf_kind) if request.lobe_split else None
@@ -220,6 +222,25 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
                         surface=surface, lobe=lobe, background=bg, n_samples=int(P),
                         n_head_evals=int(sel.index.shape[0]), inv_s=sw.inv_s.detach(),
                         eikonal_weight=eik_w, colour_logits=torch.cat(colour_logits) if colour_logits else None)
+
+
+def ray_visibility(model, x: Tensor, n: Tensor, weight_sum: Tensor) -> Tensor | None:
+    """``[R, K]`` which global emitters each ray's surface point ``x [R, 3]`` (normal ``n``)
+    sees, traced through the SDF (:meth:`nepf_core.fields.emitters.TracedEmitters.trace_visibility`)
+    for the rays that meet the surface (``weight_sum > SURFACE_WEIGHT``; the others, whose PBR
+    colour is the background's, count as seeing all); None for the photon network."""
+    trace = getattr(model.photon, "trace_visibility", None)
+    if trace is None:
+        return None
+    vis = x.new_ones(x.shape[0], model.photon.count)
+    hit = (weight_sum > SURFACE_WEIGHT).nonzero(as_tuple=True)[0]
+    if hit.numel():
+        vis[hit] = trace(model.query_sdf, x[hit], n[hit])
+    return vis
+
+
+SURFACE_WEIGHT = 1e-2
+"""A ray whose SDF weights sum to at most this has no surface worth a shadow ray."""
 
 
 def render_background_only(model, rays: RayBatch, cfg: RenderConfig, *, train: bool,

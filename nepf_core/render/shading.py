@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from nepf_core import bsdf
+from nepf_core.fields.emitters import dark_under_emitters, dominant
 
 
 @dataclass(frozen=True)
@@ -47,6 +48,9 @@ class PointShading:
     roughness: Tensor
     metallic: Tensor
     logits: Tensor | None
+    lights: tuple[Tensor, Tensor] | None = None
+    """With global emitters: every emitter's ``(directions [N, K, 3], irradiance [N, K])``
+    (``light_dir`` and ``intensity`` are the dominant one's); None with the photon network."""
 
 
 @dataclass
@@ -65,31 +69,51 @@ def _autocast(cfg, device: torch.device):
 
 
 def shade_points(model, cfg, shading: Shading, xs: Tensor, vs: Tensor, ns: Tensor, fs: Tensor,
-                 unlit: Tensor | None, *, logits: bool = False) -> PointShading:
+                 unlit: Tensor | None, *, logits: bool = False, visibility: Tensor | None = None) -> PointShading:
     """Photon + material heads and the BSDF at ``N`` points: ``xs, vs, ns [N, 3]`` (position,
     ray direction, unit normal), ``fs [N, F]`` SDF features, ``unlit [N]`` bool or None. With
     ``cfg.unlit_albedo_stopgrad`` the colour error of an unlit point does not reach its albedo
     (a pixel that received no light says nothing about the albedo). Without
-    ``shading.specular`` the fading lobe :func:`nepf_core.bsdf.shade_fading_lobe`."""
+    ``shading.specular`` the fading lobe :func:`nepf_core.bsdf.shade_fading_lobe`. With global
+    emitters (:mod:`nepf_core.fields.emitters`) one BSDF term per emitter is summed, each
+    scaled by ``visibility [N, K]`` (None: all seen), and where that visibility is traced a dark
+    pixel counts as unlit only if its point is dark under the emitters too
+    (:func:`~nepf_core.fields.emitters.dark_under_emitters`): the pixel alone cannot tell a black
+    texture from a shadow, the traced shadows can (docs/FAST.md, "The light model")."""
     with _autocast(cfg, xs.device):
-        light_dir, intensity = model.photon(xs, ns, fs)
         if logits:
             albedo, rough, metal, z = model.material(xs, ns, fs, with_logits=True)
         else:
             (albedo, rough, metal), z = model.material(xs, ns, fs), None
-    light_dir, intensity = light_dir.float(), intensity.float()
+    if hasattr(model.photon, "illuminate"):
+        dirs, irradiance = model.photon.illuminate(xs, ns, fs, visibility)
+    else:
+        with _autocast(cfg, xs.device):
+            light_dir, intensity = model.photon(xs, ns, fs)
+        dirs, irradiance = light_dir.float()[:, None], intensity.float()[:, None]
     albedo, rough, metal = albedo.float(), rough.float(), metal.float()
     albedo_shade = albedo
     if cfg.unlit_albedo_stopgrad and unlit is not None:
+        if visibility is not None:
+            unlit = unlit & dark_under_emitters(dirs, irradiance, ns)
         albedo_shade = torch.where(unlit[:, None], albedo.detach(), albedo)
-    if not shading.specular:  # lobe dropped: (1 - w m) f_d(c) + w f_s, w fading to 0 (a dielectric diffuse)
-        pbr = bsdf.shade_fading_lobe(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
-                                     intensity[:, None], shading.diffuse_metal_weight, lambertian=cfg.lambertian,
-                                     kind=cfg.bsdf_kind)
-    else:
-        pbr = bsdf.shade(ns, light_dir, -vs, albedo_shade, rough[:, None], metal[:, None],
-                         intensity[:, None], lambertian=cfg.lambertian, specular=True, kind=cfg.bsdf_kind)
-    return PointShading(pbr, light_dir, intensity, albedo, rough, metal, None if z is None else z.float())
+    pbr = sum(shade_one_light(cfg, shading, ns, dirs[:, k], -vs, albedo_shade, rough, metal, irradiance[:, k])
+              for k in range(dirs.shape[1]))
+    light_dir, intensity = dominant(dirs, irradiance, ns)
+    return PointShading(pbr, light_dir, intensity, albedo, rough, metal, None if z is None else z.float(),
+                        (dirs, irradiance) if hasattr(model.photon, "illuminate") else None)
+
+
+def shade_one_light(cfg, shading: Shading, n: Tensor, l: Tensor, v: Tensor, albedo: Tensor, rough: Tensor,
+                    metal: Tensor, irradiance: Tensor) -> Tensor:
+    """``f(l, v, n) E (n . l)^+ [N, 3]`` for one light per point (``n, l, v [N, 3]``, ``E [N]``);
+    without ``shading.specular`` the fading lobe ``(1 - w m) f_d(c) + w f_s`` (w fading to 0, a
+    dielectric diffuse)."""
+    if not shading.specular:
+        return bsdf.shade_fading_lobe(n, l, v, albedo, rough[:, None], metal[:, None], irradiance[:, None],
+                                      shading.diffuse_metal_weight, lambertian=cfg.lambertian, kind=cfg.bsdf_kind)
+    return bsdf.shade(n, l, v, albedo, rough[:, None], metal[:, None], irradiance[:, None],
+                      lambertian=cfg.lambertian, specular=True, kind=cfg.bsdf_kind)
 
 
 def selected_samples(weights: Tensor, flat_max: Tensor, threshold: float) -> Tensor:
@@ -103,7 +127,7 @@ def selected_samples(weights: Tensor, flat_max: Tensor, threshold: float) -> Ten
 
 
 def shade_samples(model, cfg, shading: Shading, sw, normals: Tensor, sel_idx: Tensor,
-                  unlit_ray: Tensor | None, *, train: bool) -> ShadedSamples:
+                  unlit_ray: Tensor | None, *, train: bool, ray_visibility: Tensor | None = None) -> ShadedSamples:
     """Radiance, photon, material and the BSDF at the samples ``sel_idx`` of
     :class:`~nepf_core.render.weights.SampleWeights` ``sw`` (``normals [P, 3]`` unit;
     ``unlit_ray [R]`` or None)."""
@@ -112,6 +136,7 @@ def shade_samples(model, cfg, shading: Shading, sw, normals: Tensor, sel_idx: Te
     with _autocast(cfg, xs.device):
         rad, rad_z = model.radiance(xs, vs, gs, fs, with_logits=True)
     unlit = unlit_ray[sel_idx // S] if unlit_ray is not None else None
-    p = shade_points(model, cfg, shading, xs, vs, ns, fs, unlit, logits=train)
-    return ShadedSamples(p.pbr, p.light_dir, p.intensity, p.albedo, p.roughness, p.metallic, p.logits,
+    vis = ray_visibility[sel_idx // S] if ray_visibility is not None else None
+    p = shade_points(model, cfg, shading, xs, vs, ns, fs, unlit, logits=train, visibility=vis)
+    return ShadedSamples(p.pbr, p.light_dir, p.intensity, p.albedo, p.roughness, p.metallic, p.logits, p.lights,
                          index=sel_idx, radiance=rad.float(), radiance_logits=rad_z.float() if train else None)

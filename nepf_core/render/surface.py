@@ -70,6 +70,9 @@ class Surface:
     """``[R]`` in [0, 1]."""
     material_logits: Tensor | None = None
     """``[R, 5]`` the material network's raw outputs (training renders only)."""
+    lights: tuple[Tensor, Tensor] | None = None
+    """With global emitters (:mod:`nepf_core.fields.emitters`): every light's ``(directions
+    [R, K, 3], irradiance [R, K])``; ``light_dir``/``intensity`` are the dominant one's."""
     jitter: MaterialSample | None = None
     """The material next to ``x*`` (training with ``RenderConfig.albedo_smooth_sigma > 0``)."""
 
@@ -98,7 +101,8 @@ def surface_at_index(sel: "ShadedSamples", flat_max: Tensor, pts: Tensor, normal
     k = pos[flat_max]
     return Surface(x=pts[flat_max], normal=normals[flat_max], direction=d, light_dir=sel.light_dir[k],
                    intensity=sel.intensity[k], albedo=sel.albedo[k], roughness=sel.roughness[k],
-                   metallic=sel.metallic[k], material_logits=None if sel.logits is None else sel.logits[k])
+                   metallic=sel.metallic[k], material_logits=None if sel.logits is None else sel.logits[k],
+                   lights=None if sel.lights is None else (sel.lights[0][k], sel.lights[1][k]))
 
 
 def refine_surface(model, o: Tensor, d: Tensor, z: Tensor, f: Tensor, idx_max: Tensor, *,
@@ -154,9 +158,10 @@ def jittered_material(model, surface: Surface, sigma: float, *, amp: bool, xj: T
 def lobe_split(surface: Surface, rgb_surf: Tensor, *, lambertian: bool, kind: str) -> LobeSplit:
     """:class:`LobeSplit` of ``L_surf [R, 3]`` shaded at ``surface`` with the BSDF ``kind``."""
     s = surface
-    diffuse_only = bsdf.shade(s.normal, s.light_dir, -s.direction, s.albedo, s.roughness[:, None],
-                              s.metallic[:, None], s.intensity[:, None], lambertian=lambertian, specular=False,
-                              kind=kind)
+    dirs, irradiance = s.lights if s.lights is not None else (s.light_dir[:, None], s.intensity[:, None])
+    diffuse_only = sum(bsdf.shade(s.normal, dirs[:, k], -s.direction, s.albedo, s.roughness[:, None],
+                                  s.metallic[:, None], irradiance[:, k, None], lambertian=lambertian,
+                                  specular=False, kind=kind) for k in range(dirs.shape[1]))
     rgb = rgb_surf.detach()
     total = rgb.sum(-1)
     share = (total - diffuse_only.sum(-1)).clamp_min(0) / total.clamp_min(1e-6)

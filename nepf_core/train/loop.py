@@ -51,7 +51,7 @@ from nepf_core.train.rules.callback import DataContext, EvaluationContext, Model
 from nepf_core.train.run_state import RunState
 from nepf_core.train.schedule import (coarse_to_fine, cos_anneal_ratio, progress_fraction, run_eta,
                                      scheduled_lr_factor)
-from nepf_core.train.setup import init_radiance_to_data, make_optimizer, resolve_device, unlit_pixels
+from nepf_core.train.setup import init_radiance_to_data, make_optimizer, place_lights, resolve_device, unlit_pixels
 from nepf_core.train.surface_points import SurfacePointPrior
 from nepf_core.up_axis import camera_up_world
 from nepf_core.weight_average import ParamEMA
@@ -116,6 +116,7 @@ class TrainingRun:
 
         self.model = NePFModel(self.run_state.model_config(cfg.model)).to(dev)
         init_radiance_to_data(self.model, scene)
+        place_lights(self.model, scene)
         self.optimizer = make_optimizer(self.model, tc.lr, tc.lr_grid)
         self.gen = torch.Generator().manual_seed(tc.seed)
         self.ema = ParamEMA(self.model, tc.ema_decay) if tc.ema_decay != 0 else None   # a negative one: ParamEMA says so

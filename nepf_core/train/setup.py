@@ -27,12 +27,18 @@ def param_groups(model: NePFModel, lr: float, lr_grid: float) -> list[dict]:
     """Two groups: grid-encoding tables (``lr_grid``) and everything else (``lr``); each keeps its
     ``base_lr`` for the schedule."""
     tables = {id(m.table) for m in model.modules() if isinstance(m, MultiResGrid)}
+    scaled = [m for m in model.modules() if getattr(m, "lr_scale", None)]
+    own = {id(p) for m in scaled for p in m.parameters(recurse=False)}
     grid, other = [], []
     for p in model.parameters():
-        (grid if id(p) in tables else other).append(p)
+        if id(p) not in own:
+            (grid if id(p) in tables else other).append(p)
     groups = [{"params": other, "lr": lr, "base_lr": lr}]
     if grid:
         groups.append({"params": grid, "lr": lr_grid, "base_lr": lr_grid})
+    for m in scaled:   # a module that names an lr_scale (global emitters) learns at that times lr
+        groups.append({"params": list(m.parameters(recurse=False)), "lr": lr * m.lr_scale,
+                       "base_lr": lr * m.lr_scale})
     return groups
 
 
@@ -75,6 +81,31 @@ def init_radiance_to_data(model: NePFModel, scene: Scene) -> None:
     p = torch.as_tensor(total / count, dtype=torch.float32).clamp(1e-3, 0.999)
     with torch.no_grad():
         last.bias.copy_(torch.log(p / (1.0 - p)).to(last.bias))
+
+
+def place_lights(model: NePFModel, scene: Scene) -> None:
+    """Start global emitters at the scene's camera centres
+    (:meth:`nepf_core.fields.emitters.TracedEmitters.place`) and at the irradiance the images ask
+    for: ``E0 = pi q99(max_c L_gt) / EMITTER_START_ALBEDO`` at the origin, so the brightest
+    foreground pixels need that albedo under head-on light. The photon network needs no placing.
+    A resumed run overwrites this with its checkpoint.
+
+    Why from the data: the images fix only albedo x irradiance. The photon network's ``I(x)`` is
+    free per point and climbs where a surface needs more light; a global emitter started too dim
+    sends every albedo into the top of its sigmoid in the first steps, and from there the texture
+    cannot come back (spot_textured at 1,000 steps: albedo 0.94 on its black spots, v56)."""
+    place = getattr(model.photon, "place", None)
+    if place is None:
+        return
+    place(torch.as_tensor(np.asarray(scene.c2w)[:, :3, 3], dtype=torch.float32))
+    peaks = foreground_peaks(scene.images, scene.masks)
+    step = max(1, peaks.size // 2_000_000)  # a subsample is plenty for a quantile
+    q99 = float(np.quantile(peaks[::step], 0.99)) if peaks.size else 0.0
+    model.photon.set_init_intensity(float(np.pi * max(q99, 1e-3) / EMITTER_START_ALBEDO))
+
+
+EMITTER_START_ALBEDO = 0.5
+"""The albedo the brightest foreground pixels need under the emitters' starting light."""
 
 
 def unlit_pixels(scene: Scene, stopgrad: bool, rel_threshold: float) -> tuple[float | None, Decision | None]:
