@@ -61,12 +61,14 @@ def test_refined_surface_point_lies_on_the_surface_whatever_the_sampling(inv_s):
     # its normal is the sphere's, from its own finite differences
     n_true = torch.nn.functional.normalize(coarse.surface.x, dim=-1)
     assert float((coarse.surface.normal * n_true).sum(-1).min()) > 0.999
-    # the surface colour is the BSDF at that point: the same shading the refined quantities give
+    # the surface colour is the BSDF at that point: the same shading the refined quantities give,
+    # summed over the lights (fast's traced emitters: each one's irradiance carries its shadow)
     from nepf_core import bsdf
     s = coarse.surface
-    ref = bsdf.shade(s.normal, s.light_dir, -rays.directions, s.albedo, s.roughness[:, None],
-                     s.metallic[:, None], s.intensity[:, None], lambertian=cfg.render.lambertian,
-                     specular=True, kind=cfg.render.bsdf_kind)
+    dirs, irr = s.lights if s.lights is not None else (s.light_dir[:, None], s.intensity[:, None])
+    ref = sum(bsdf.shade(s.normal, dirs[:, k], -rays.directions, s.albedo, s.roughness[:, None],
+                         s.metallic[:, None], irr[:, k, None], lambertian=cfg.render.lambertian,
+                         specular=True, kind=cfg.render.bsdf_kind) for k in range(dirs.shape[1]))
     assert torch.allclose(coarse.rgb_surf, ref, atol=1e-6)
     # the volume colours do not change: only L_surf moves
     assert torch.allclose(coarse.rgb_vol, plain.rgb_vol) and torch.allclose(coarse.rgb_r, plain.rgb_r)
