@@ -154,3 +154,13 @@ class ModelFieldQuery:
 
     def light(self, x: Tensor, n: Tensor):
         return self._chunks(self.model.query_light, x, n)
+
+    @torch.no_grad()
+    def emitters(self) -> tuple[Tensor, Tensor] | None:
+        """The learned global emitters ``(positions [K, 3] normalised frame, radiant intensity
+        [K])`` with ``model.light = "emitters"``; None with the photon network."""
+        from nepf_core.fields.emitters import TracedEmitters
+        light = self.model.photon
+        if not isinstance(light, TracedEmitters):
+            return None
+        return light.positions.detach().clone(), light.log_intensity.detach().exp()

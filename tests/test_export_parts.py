@@ -111,6 +111,64 @@ def test_fit_lights_point_and_directional():
     assert fit["direction_concentration"] == pytest.approx(1.0)
 
 
+def test_learned_emitters_written_as_they_are_in_both_frames():
+    """emitters_to_world by hand (scale 2, translation t: p -> 2 p + t, I -> 4 I, brightest first)
+    and lights_to_frame moving their positions into the GLB's frame (x, y, z) -> (x, z, -y)."""
+    from nepf_core.export.light_field import emitters_to_world, lights_to_frame
+    from nepf_core.up_axis import gltf_from_world
+    m = np.diag([2.0, 2.0, 2.0, 1.0])
+    m[:3, 3] = [1.0, -1.0, 0.5]
+    world = emitters_to_world(torch.tensor([[0.0, 0.0, 3.0], [1.0, 0.0, 0.0]]), torch.tensor([5.0, 7.0]), m)
+    assert [e["intensity"] for e in world] == pytest.approx([28.0, 20.0])
+    np.testing.assert_allclose([e["position"] for e in world], [[3.0, -1.0, 0.5], [1.0, -1.0, 6.5]])
+    summary = {"dominant_direction": [0.0, 0.0, 1.0], "object_center": [0.0, 0.0, 0.0], "point_light": None,
+               "emitters": world}
+    glb = lights_to_frame(summary, gltf_from_world("+z"))
+    np.testing.assert_allclose([e["position"] for e in glb["emitters"]], [[3.0, 0.5, 1.0], [1.0, 6.5, 1.0]])
+    assert [e["intensity"] for e in glb["emitters"]] == pytest.approx([28.0, 20.0])
+    assert summary["emitters"][0]["position"] == [3.0, -1.0, 0.5]  # the world copy is not moved
+
+
+class _EmitterSphereQuery(SphereQuery):
+    """The analytic sphere lit by its point light, reported as one learned emitter."""
+
+    def emitters(self):
+        return self.light_pos[None].clone(), torch.tensor([self.light_intensity])
+
+
+def test_lights_json_lists_the_learned_emitters_beside_the_fitted_light(tmp_path):
+    import json
+
+    import trimesh
+
+    from nepf_core.export import _write_lights
+    from nepf_core.up_axis import gltf_from_world
+    q, m, rot = _EmitterSphereQuery(), similarity(scale=2.5), gltf_from_world("+z")
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=q.radius)
+    mesh.apply_translation(q.center.numpy())
+    _write_lights(q, mesh, m, tmp_path, rot, light_samples=500, chunk=4096, device="cpu")
+    lights = json.loads((tmp_path / "lights.json").read_text())
+    light_w = m[:3, :3] @ q.light_pos.numpy() + m[:3, 3]
+    (emitter,) = lights["world"]["emitters"]
+    np.testing.assert_allclose(emitter["position"], light_w, atol=1e-5)
+    assert emitter["intensity"] == pytest.approx(q.light_intensity * 2.5 ** 2, rel=1e-6)
+    np.testing.assert_allclose(lights["emitters"][0]["position"], rot @ light_w, atol=1e-5)
+    # the fit from the light field finds the same light
+    np.testing.assert_allclose(lights["world"]["point_light"]["position"], light_w, atol=1e-2 * 2.5)
+
+
+def test_model_query_reports_emitters_only_with_the_emitter_light():
+    from nepf_core.model import ModelConfig, ModelFieldQuery, NePFModel
+    model = NePFModel(ModelConfig(sdf_kind="grid", light="emitters", emitters=2))
+    with torch.no_grad():
+        model.photon.positions.copy_(torch.tensor([[0.0, 0.0, 4.0], [3.0, 0.0, 0.0]]))
+        model.photon.log_intensity.copy_(torch.log(torch.tensor([9.0, 0.5])))
+    positions, intensity = ModelFieldQuery(model).emitters()
+    np.testing.assert_allclose(positions.numpy(), [[0.0, 0.0, 4.0], [3.0, 0.0, 0.0]])
+    np.testing.assert_allclose(intensity.numpy(), [9.0, 0.5], rtol=1e-6)
+    assert ModelFieldQuery(NePFModel(ModelConfig(sdf_kind="grid"))).emitters() is None
+
+
 CRASHING_RENDERER = """
 import os, signal, sys
 print("about to crash", file=sys.stderr, flush=True)

@@ -65,7 +65,7 @@ def test_refined_surface_point_lies_on_the_surface_whatever_the_sampling(inv_s):
     # summed over the lights (fast's traced emitters: each one's irradiance carries its shadow)
     from nepf_core import bsdf
     s = coarse.surface
-    dirs, irr = s.lights if s.lights is not None else (s.light_dir[:, None], s.intensity[:, None])
+    dirs, irr = s.every_light()
     ref = sum(bsdf.shade(s.normal, dirs[:, k], -rays.directions, s.albedo, s.roughness[:, None],
                          s.metallic[:, None], irr[:, k, None], lambertian=cfg.render.lambertian,
                          specular=True, kind=cfg.render.bsdf_kind) for k in range(dirs.shape[1]))

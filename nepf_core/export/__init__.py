@@ -56,7 +56,7 @@ from PIL import Image
 from nepf_core.up_axis import UpFrame
 
 from .glb import write_glb
-from .light_field import fit_lights, sample_light_field, write_light_field
+from .light_field import emitters_to_world, fit_lights, sample_light_field, write_light_field
 from .manifest import manifest_entry, write_manifest
 from .mesh import (EmptyMeshError, decimate_mesh, extract_mesh, mesh_to_world,
                    vertex_normals_from_field)
@@ -78,6 +78,9 @@ class FieldQuery(Protocol):
 
     def light(self, x: torch.Tensor, n: torch.Tensor
               ) -> tuple[torch.Tensor, torch.Tensor]: ...  # unit dir [N,3], intensity [N]
+
+    # optional: ``emitters() -> (positions [K,3], intensity [K]) | None``, the learned global
+    # emitters (normalised frame), written to lights.json as they are
 
 
 def _png_bytes(img: np.ndarray) -> bytes:
@@ -163,6 +166,9 @@ def _write_lights(query, mesh, m: np.ndarray, out_dir: Path, rot: np.ndarray, li
     scale = float(np.cbrt(abs(np.linalg.det(m[:3, :3]))))
     radius_w = float(np.linalg.norm(mesh.vertices - mesh.vertices.mean(0), axis=-1).max()) * scale
     lights = fit_lights(field["points"], field["directions"], field["intensity"], object_radius=radius_w)
+    learned = query.emitters() if hasattr(query, "emitters") else None
+    if learned is not None:
+        lights["emitters"] = emitters_to_world(*learned, m)
     write_light_field(out_dir, field, lights, gltf_from_world=rot)
     return lights
 

@@ -20,6 +20,11 @@ Both are computed in the input's world frame and written in the GLB's (+Y up,
 * ``confidence = exp(-(rms / radius) / 0.05) * min(1, conditioning / 0.01)`` in [0, 1]
   for a point light (1 = lines meet in one well-constrained point), 0 when directional.
 
+With the learned global emitters (``model.light = "emitters"``, :mod:`nepf_core.fields.emitters`)
+``lights.json`` also lists them as they are, under ``"emitters"``: each one's ``position`` and its
+radiant intensity ``I_k s^2`` (:func:`emitters_to_world`); the fitted summary above then describes
+the key emitter's share of the light field.
+
 Intensities are the photon field's values (the field's units; for a world frame scaled by
 ``s`` the inverse-square intensity ``I_L`` is in world units, i.e. it scales by ``s^2``).
 """
@@ -36,7 +41,7 @@ import trimesh
 
 from .mesh import directions_to_world, evaluate_in_chunks, mesh_to_world
 
-__all__ = ["sample_light_field", "fit_lights", "lights_to_frame", "write_light_field"]
+__all__ = ["sample_light_field", "fit_lights", "emitters_to_world", "lights_to_frame", "write_light_field"]
 
 
 def sample_light_field(
@@ -145,6 +150,20 @@ def fit_lights(points: np.ndarray, directions: np.ndarray, intensity: np.ndarray
     }
 
 
+def emitters_to_world(positions, intensity, world_from_norm: np.ndarray) -> list[dict]:
+    """The learned emitters ``positions [K, 3]`` (normalised frame) and radiant intensities ``I_k
+    [K]`` in the world frame ``x_w = s R x + t``: ``position = M p_k`` and, since the irradiance
+    ``I_k / |p_k - x|^2`` must not change when every distance grows by ``s``, intensity ``I_k s^2``
+    with ``s = |det M[:3, :3]|^(1/3)``. Listed brightest first."""
+    p = np.asarray(torch.as_tensor(positions).detach().cpu(), np.float64).reshape(-1, 3)
+    i = np.asarray(torch.as_tensor(intensity).detach().cpu(), np.float64).reshape(-1)
+    m = np.asarray(world_from_norm, np.float64)
+    scale2 = float(np.cbrt(abs(np.linalg.det(m[:3, :3])))) ** 2
+    pw, _ = mesh_to_world(p, m)
+    order = np.argsort(-i, kind="stable")
+    return [{"position": pw[k].tolist(), "intensity": float(i[k] * scale2)} for k in order]
+
+
 def _rounded(a: np.ndarray, digits: int = 6) -> list:
     return np.round(np.asarray(a, dtype=np.float64), digits).tolist()
 
@@ -153,8 +172,8 @@ def lights_to_frame(lights: dict, rotation: np.ndarray, frame: str = "glb") -> d
     """``lights`` (a :func:`fit_lights` summary, world frame) in the frame ``x' = R x``.
 
     A rotation keeps lengths, so only the vectors move: ``dominant_direction``,
-    ``object_center`` and ``point_light.position``; radii, residuals, intensities and the
-    confidence are unchanged."""
+    ``object_center``, ``point_light.position`` and each ``emitters[k].position``; radii,
+    residuals, intensities and the confidence are unchanged."""
     r = np.asarray(rotation, np.float64)
     out = {**lights, "frame": frame}
     out["dominant_direction"] = (r @ np.asarray(lights["dominant_direction"], np.float64)).tolist()
@@ -163,6 +182,9 @@ def lights_to_frame(lights: dict, rotation: np.ndarray, frame: str = "glb") -> d
         pl = dict(lights["point_light"])
         pl["position"] = (r @ np.asarray(pl["position"], np.float64)).tolist()
         out["point_light"] = pl
+    if lights.get("emitters"):
+        out["emitters"] = [{**e, "position": (r @ np.asarray(e["position"], np.float64)).tolist()}
+                           for e in lights["emitters"]]
     return out
 
 

@@ -76,6 +76,13 @@ class Surface:
     jitter: MaterialSample | None = None
     """The material next to ``x*`` (training with ``RenderConfig.albedo_smooth_sigma > 0``)."""
 
+    def every_light(self) -> tuple[Tensor, Tensor]:
+        """``(directions [R, K, 3], irradiance [R, K])`` of every light shading ``x*``: the
+        emitters' :attr:`lights`, or the photon network's one light as ``K = 1``."""
+        if self.lights is not None:
+            return self.lights
+        return self.light_dir[:, None], self.intensity[:, None]
+
 
 @dataclass(frozen=True)
 class SurfaceRequest:
@@ -158,7 +165,7 @@ def jittered_material(model, surface: Surface, sigma: float, *, amp: bool, xj: T
 def lobe_split(surface: Surface, rgb_surf: Tensor, *, lambertian: bool, kind: str) -> LobeSplit:
     """:class:`LobeSplit` of ``L_surf [R, 3]`` shaded at ``surface`` with the BSDF ``kind``."""
     s = surface
-    dirs, irradiance = s.lights if s.lights is not None else (s.light_dir[:, None], s.intensity[:, None])
+    dirs, irradiance = s.every_light()
     diffuse_only = sum(bsdf.shade(s.normal, dirs[:, k], -s.direction, s.albedo, s.roughness[:, None],
                                   s.metallic[:, None], irradiance[:, k, None], lambertian=lambertian,
                                   specular=False, kind=kind) for k in range(dirs.shape[1]))
