@@ -15,9 +15,8 @@ through the SDF (:func:`nepf_core.relight.tracing.light_visibility`), once per r
 surface point and shared by the ray's samples. A learned visibility (v25/v35, docs/TRIED.md)
 could carry the cosine shading itself, which the relight then kept in the albedo.
 
-The emitters start at camera centres, pushed out by ``PLACE_FACTOR`` (a lamp beside the camera
-is the common capture): the key one at the camera nearest the direction in which the views grow
-brighter (:func:`brightening_direction`), the others farthest from it; they move by gradient (their own parameter group at
+The emitters start at the camera centres farthest apart, pushed out by ``PLACE_FACTOR`` (a lamp
+beside the camera is the common capture), and move by gradient (their own parameter group at
 ``LR_SCALE`` times ``lr``: at the heads' rate an emitter ~5 units away turns 0.06 deg a step).
 """
 
@@ -72,25 +71,19 @@ class TracedEmitters(nn.Module):
         self.log_intensity.copy_(torch.log(value * d2 * share))
 
     @torch.no_grad()
-    def place(self, camera_centres: Tensor, toward: Tensor | None = None) -> int | None:
-        """Start the emitters at ``K`` of the camera centres ``[C, 3]`` chosen farthest apart, times
-        ``PLACE_FACTOR``, keeping the origin's irradiance. The first is the camera whose direction
-        from the origin is nearest the unit vector ``toward [3]`` (None: the camera nearest the
-        cameras' mean). Fewer cameras than emitters: the cameras repeat. Returns the first
-        camera's index (None without cameras)."""
+    def place(self, camera_centres: Tensor) -> None:
+        """Start the emitters at ``K`` of the camera centres ``[C, 3]`` chosen farthest apart (the
+        first the one nearest the cameras' mean), times ``PLACE_FACTOR``, keeping the origin's
+        irradiance. Fewer cameras than emitters: the cameras repeat."""
         c = camera_centres.to(self.positions).reshape(-1, 3)
         if len(c) == 0:
-            return None
-        if toward is None:
-            chosen = [int(((c - c.mean(0)) ** 2).sum(-1).argmin())]
-        else:
-            chosen = [int((torch.nn.functional.normalize(c, dim=-1) @ toward.to(c)).argmax())]
+            return
+        chosen = [int(((c - c.mean(0)) ** 2).sum(-1).argmin())]
         while len(chosen) < self.count:
             chosen.append(int(torch.cdist(c, c[chosen]).min(-1).values.argmax()))
         at_origin = (self.log_intensity.exp() / (self.positions ** 2).sum(-1).clamp_min(MIN_DISTANCE ** 2)).sum()
         self.positions.copy_(c[chosen] * PLACE_FACTOR)
         self.set_init_intensity(float(at_origin))
-        return chosen[0]
 
     def illuminate(self, x: Tensor, n: Tensor | None = None, feature: Tensor | None = None,
                    visibility: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -116,31 +109,6 @@ class TracedEmitters(nn.Module):
         from nepf_core.relight.tracing import TraceConfig, light_visibility
         cfg = TraceConfig(max_steps=SHADOW_STEPS, shadow_offset=SHADOW_OFFSET)
         return torch.stack([light_visibility(sdf, x, n, p, cfg) for p in self.positions.detach()], -1)
-
-
-def brightening_direction(view_directions: Tensor, brightness: Tensor) -> Tensor | None:
-    """The unit direction ``beta / |beta|`` of the least-squares fit ``b_v = alpha + beta . c_v``
-    of each view's mean foreground brightness ``brightness [V]`` on its unit direction from the
-    object ``view_directions [V, 3]``; None with fewer than 4 views or when the brightness does
-    not change with the view (``|beta| <= 1e-6 (|alpha| + 1e-12)``).
-
-    Why: seen from beside its lamp an object shows its lit side; the farther a view turns from
-    the lamp, the more of what it sees is in shadow. For a convex Lambertian object the mean
-    brightness of a view falls close to linearly in ``cos`` of the angle between the view and the
-    light, so ``beta`` points at the light. Every view votes: one view's highlight on a metal
-    does not decide (the brightest view alone put bunny_metal's key light 37 deg off, v59). The
-    elevation is weakly fixed when the cameras share a hemisphere (the constant and ``c_z``
-    correlate); :meth:`TracedEmitters.place` snaps the result to the nearest camera."""
-    ok = torch.isfinite(brightness)
-    c, b = view_directions[ok].double(), brightness[ok].double()
-    if len(b) < 4:
-        return None
-    design = torch.cat([torch.ones_like(b)[:, None], c], -1)
-    coef = torch.linalg.lstsq(design, b[:, None]).solution[:, 0]
-    beta = coef[1:]
-    if float(beta.norm()) <= 1e-6 * (abs(float(coef[0])) + 1e-12):
-        return None
-    return (beta / beta.norm()).to(view_directions.dtype)
 
 
 SHADOW_STEPS = 48

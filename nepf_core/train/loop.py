@@ -116,7 +116,7 @@ class TrainingRun:
 
         self.model = NePFModel(self.run_state.model_config(cfg.model)).to(dev)
         init_radiance_to_data(self.model, scene)
-        light_start = place_lights(self.model, scene)
+        place_lights(self.model, scene)
         self.optimizer = make_optimizer(self.model, tc.lr, tc.lr_grid)
         self.gen = torch.Generator().manual_seed(tc.seed)
         self.ema = ParamEMA(self.model, tc.ema_decay) if tc.ema_decay != 0 else None   # a negative one: ParamEMA says so
@@ -130,7 +130,6 @@ class TrainingRun:
                              else None)
         self.unlit_thr, decision = unlit_pixels(scene, cfg.render.unlit_albedo_stopgrad, tc.unlit_rel_threshold)
         self.adaptivity.log_decision(decision)
-        self.adaptivity.log_decision(light_start)
         self.adaptivity.on_model(ModelContext(self.model, scene))
         # the render settings in effect (bf16 heads only on CUDA); evaluations use the same
         self.run_cfg = dataclasses.replace(cfg, render=dataclasses.replace(cfg.render, amp_heads=bool(tc.amp and dev.type == "cuda")))

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from nepf_core.fields.emitters import brightening_direction
 from nepf_core.fields.grid_encoding import MultiResGrid
 
 from nepf_core.data.scene import Scene
@@ -84,11 +83,9 @@ def init_radiance_to_data(model: NePFModel, scene: Scene) -> None:
         last.bias.copy_(torch.log(p / (1.0 - p)).to(last.bias))
 
 
-def place_lights(model: NePFModel, scene: Scene) -> Decision | None:
+def place_lights(model: NePFModel, scene: Scene) -> None:
     """Start global emitters at the scene's camera centres
-    (:meth:`nepf_core.fields.emitters.TracedEmitters.place`), the key one at the camera nearest the
-    direction in which the views' mean foreground brightness grows
-    (:func:`nepf_core.fields.emitters.brightening_direction`), and at the irradiance the images ask
+    (:meth:`nepf_core.fields.emitters.TracedEmitters.place`) and at the irradiance the images ask
     for: ``E0 = pi q99(max_c L_gt) / EMITTER_START_ALBEDO`` at the origin, so the brightest
     foreground pixels need that albedo under head-on light. The photon network needs no placing.
     A resumed run overwrites this with its checkpoint.
@@ -99,38 +96,12 @@ def place_lights(model: NePFModel, scene: Scene) -> Decision | None:
     cannot come back (spot_textured at 1,000 steps: albedo 0.94 on its black spots, v56)."""
     place = getattr(model.photon, "place", None)
     if place is None:
-        return None
-    centres = torch.as_tensor(np.asarray(scene.c2w)[:, :3, 3], dtype=torch.float32)
-    views = torch.nn.functional.normalize(centres, dim=-1)
-    toward = brightening_direction(views, torch.as_tensor(view_brightness(scene.images, scene.masks)))
-    key = place(centres, toward)
+        return
+    place(torch.as_tensor(np.asarray(scene.c2w)[:, :3, 3], dtype=torch.float32))
     peaks = foreground_peaks(scene.images, scene.masks)
     step = max(1, peaks.size // 2_000_000)  # a subsample is plenty for a quantile
     q99 = float(np.quantile(peaks[::step], 0.99)) if peaks.size else 0.0
     model.photon.set_init_intensity(float(np.pi * max(q99, 1e-3) / EMITTER_START_ALBEDO))
-    if key is None:
-        return None
-    if toward is None:
-        why = "the views are too few or equally bright to say where the light is: the camera nearest the cameras' mean"
-    else:
-        off = float(torch.rad2deg(torch.arccos((views[key] @ toward).clamp(-1, 1))))
-        why = (f"the camera nearest ({off:.1f} deg) the direction in which the views' foreground brightness "
-               "grows (least squares over the views)")
-    return Decision("key_emitter_start", {"view": key, "brightening_direction": None if toward is None
-                                          else [round(float(v), 4) for v in toward]},
-                    f"the key light starts beside training view {key}: {why}")
-
-
-def view_brightness(images: np.ndarray, masks: np.ndarray | None) -> np.ndarray:
-    """``[V]`` each view's mean linear brightness ``mean_c L`` over its foreground (every pixel
-    without masks; NaN for a view with no foreground pixel). ``images [V, H, W, 3]`` linear."""
-    grey = images.mean(-1, dtype=np.float64)
-    if masks is None:
-        return grey.reshape(len(grey), -1).mean(-1)
-    fg = (masks > 0.5).reshape(len(grey), -1)
-    total = np.where(fg, grey.reshape(len(grey), -1), 0.0).sum(-1)
-    count = fg.sum(-1)
-    return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
 
 EMITTER_START_ALBEDO = 0.5
