@@ -275,7 +275,7 @@ def test_a_fast_fit_trains_the_term(tmp_path):
         rows = []
 
         def after_step(self, run, step, out, losses):
-            self.rows.append((out.material_evidence.rays.numel(), float(losses["loss_material_evidence"])))
+            self.rows.append((out.material_evidence.rays.numel(), float(losses["loss_material_evidence"].detach())))
             # the record carries the evidence to every ray: a share per ray, recomputed here from
             # the record's sums at the rays' surface points
             rec = run.metal_record
