@@ -39,6 +39,8 @@ import numpy as np
 import torch
 import trimesh
 
+from nepf_core.relight.lights import world_scale
+
 from .mesh import directions_to_world, evaluate_in_chunks, mesh_to_world
 
 __all__ = ["sample_light_field", "fit_lights", "emitters_to_world", "lights_to_frame", "write_light_field"]
@@ -154,11 +156,12 @@ def emitters_to_world(positions, intensity, world_from_norm: np.ndarray) -> list
     """The learned emitters ``positions [K, 3]`` (normalised frame) and radiant intensities ``I_k
     [K]`` in the world frame ``x_w = s R x + t``: ``position = M p_k`` and, since the irradiance
     ``I_k / |p_k - x|^2`` must not change when every distance grows by ``s``, intensity ``I_k s^2``
-    with ``s = |det M[:3, :3]|^(1/3)``. Listed brightest first."""
+    with ``s = |det M[:3, :3]|^(1/3)`` (:func:`nepf_core.relight.lights.world_scale`). Listed
+    brightest first."""
     p = np.asarray(torch.as_tensor(positions).detach().cpu(), np.float64).reshape(-1, 3)
     i = np.asarray(torch.as_tensor(intensity).detach().cpu(), np.float64).reshape(-1)
     m = np.asarray(world_from_norm, np.float64)
-    scale2 = float(np.cbrt(abs(np.linalg.det(m[:3, :3])))) ** 2
+    scale2 = world_scale(m) ** 2
     pw, _ = mesh_to_world(p, m)
     order = np.argsort(-i, kind="stable")
     return [{"position": pw[k].tolist(), "intensity": float(i[k] * scale2)} for k in order]
