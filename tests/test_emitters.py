@@ -69,6 +69,26 @@ def test_traced_visibility_sees_an_occluder():
     assert vis[2, 1] == 1.0
 
 
+def test_batched_shadow_rays_match_one_fine_march_per_emitter():
+    # three emitters around a sphere with two blockers (all thicker than the shadow rays' coarser
+    # minimum step): the one-batch march must give each point-emitter pair the answer of a fine,
+    # long march of that pair alone (the relight's tracer), in the [N, K] order
+    from nepf_core.relight.tracing import TraceConfig, light_visibility
+    parts = [_sphere_sdf((0.0, 0.0, 0.0), 0.5), _sphere_sdf((0.0, 0.0, 0.8), 0.15), _sphere_sdf((0.75, 0.3, 0.0), 0.1)]
+    sdf = lambda x: torch.stack([f(x) for f in parts]).amin(0)
+    em = TracedEmitters(3)
+    with torch.no_grad():
+        em.positions.copy_(torch.tensor([[0.0, 0.0, 4.0], [4.0, 1.6, 0.0], [-1.0, -3.0, 1.0]]))
+    n = _fibonacci_sphere(400)
+    x = 0.5 * n
+    vis = em.trace_visibility(sdf, x, n)
+    fine = TraceConfig(max_steps=2048, min_step=1e-4, shadow_offset=2e-2)
+    ref = torch.stack([light_visibility(sdf, x, n, p, fine) for p in em.positions.detach()], -1)
+    assert vis.shape == (400, 3)
+    assert 0.1 < float((1 - ref).mean()) < 0.9 and 0 < float((1 - ref[:, 0]).sum()) != float((1 - ref[:, 1]).sum())
+    assert torch.equal(vis, ref)
+
+
 def test_shading_sums_one_bsdf_term_per_visible_emitter():
     torch.manual_seed(0)
     model = NePFModel(ModelConfig(sdf_kind="grid", light="emitters", emitters=2))

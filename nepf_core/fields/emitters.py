@@ -105,14 +105,23 @@ class TracedEmitters(nn.Module):
     @torch.no_grad()
     def trace_visibility(self, sdf, x: Tensor, n: Tensor) -> Tensor:
         """``[N, K]`` 1 where emitter ``k`` is seen from the surface points ``x [N, 3]`` (unit
-        normals ``n``), 0 where the SDF ``sdf: [M, 3] -> [M]`` blocks the segment to it."""
+        normals ``n``), 0 where the SDF ``sdf: [M, 3] -> [M]`` blocks the segment to it.
+
+        The ``N K`` shadow rays march as one batch: a march step is one SDF call whatever the
+        batch, and on a CPU a training batch's call costs mostly its fixed overhead."""
         from nepf_core.relight.tracing import TraceConfig, light_visibility
-        cfg = TraceConfig(max_steps=SHADOW_STEPS, shadow_offset=SHADOW_OFFSET)
-        return torch.stack([light_visibility(sdf, x, n, p, cfg) for p in self.positions.detach()], -1)
+        cfg = TraceConfig(max_steps=SHADOW_STEPS, min_step=SHADOW_MIN_STEP, shadow_offset=SHADOW_OFFSET)
+        K, N = self.count, x.shape[0]
+        lights = self.positions.detach().repeat_interleave(N, 0)
+        return light_visibility(sdf, x.repeat(K, 1), n.repeat(K, 1), lights, cfg).reshape(K, N).T
 
 
 SHADOW_STEPS = 48
 """Sphere-tracing steps per shadow ray in training (the relight's 128 are for final images)."""
+SHADOW_MIN_STEP = 1e-2
+"""Smallest shadow-ray step: a ray creeping through the SDF's far field (where ``f`` is small but
+positive and nothing is there) moves a pixel's footprint per step (the 128-pixel image across the
+unit ball: ~0.016) instead of the relight's 1e-3; a blocker thinner than this may be crossed."""
 SHADOW_OFFSET = 2e-2
 """Shadow rays start this far along the normal: the ray's surface point is its max-weight
 sample, up to half a sample spacing off the zero level."""
