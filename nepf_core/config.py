@@ -208,7 +208,7 @@ def fast() -> NePFConfig:
         render=RenderConfig(n_samples=24, n_importance=8, up_sample_steps=1,
                             normals="fd", alpha_mode="sample", head_weight_threshold=1e-4,
                             eikonal_fraction=0.1, unlit_albedo_stopgrad=True, albedo_smooth_sigma=0.02,
-                            surface_refine=True, bsdf_kind="gltf", surf_roughness_detached=True),
+                            surface_refine=True, bsdf_kind="gltf"),
         loss=LossConfig(w_hessian=0.0, w_surface_points=0.1, w_albedo_smooth=2e-4, w_albedo_flat=3e-6,
                         w_albedo_fill=2e-5, w_brdf_smooth=2e-4, w_material_range=1e-4, w_colour_range=1e-2,
                         w_metallic_unseen=1e-4, w_material_evidence=1e-3, w_normal_smooth=0.025, w_light=0.0,

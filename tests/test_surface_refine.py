@@ -136,24 +136,3 @@ def test_the_smoothness_priors_points_get_their_own_normal():
     assert unasked is None
     for a, b in ((xr, xr2), (nr, nr2), (xj, xj2), (fj, fj2)):
         assert torch.allclose(a, b, atol=1e-6)
-
-
-def _output_bias_grad(colour: str, detached: bool) -> torch.Tensor:
-    """``|d sum(colour) / d b| [5]`` on the material network's output biases (albedo r, g, b,
-    roughness, metallic), one training render of the fast model with the lobe on."""
-    cfg, model = _model(500.0)
-    cfg.render.surf_roughness_detached = detached
-    out = _surf(cfg, model, _rays(32), refine=True, n_samples=24, n_importance=8, train=True)
-    bias = model.material.mlp.layers[-1].bias
-    (g,) = torch.autograd.grad(getattr(out, colour).sum(), bias)
-    return g.abs()
-
-
-def test_detached_surface_roughness_leaves_the_roughness_to_the_pixels():
-    # L_surf's colour reaches the roughness only without the switch; the volume colour (L_vol,
-    # against the pixels) reaches it either way, and the albedo and metallic still learn from L_surf
-    surf_on, surf_off = _output_bias_grad("rgb_surf", False), _output_bias_grad("rgb_surf", True)
-    assert surf_on[3] > 0 and surf_off[3] == 0.0
-    assert torch.equal(surf_on[[0, 1, 2, 4]], surf_off[[0, 1, 2, 4]]) and (surf_off[[0, 1, 2, 4]] > 0).all()
-    vol_on, vol_off = _output_bias_grad("rgb_vol", False), _output_bias_grad("rgb_vol", True)
-    assert vol_off[3] > 0 and torch.equal(vol_on, vol_off)

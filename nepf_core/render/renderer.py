@@ -91,10 +91,6 @@ class RenderConfig:
     sample spacing in front of the surface, at an offset that changes with the sample
     placement. Costs one photon + material evaluation and 5 SDF queries per ray. Off in
     ``paper`` (the paper shades the max-weight point)."""
-    surf_roughness_detached: bool = False
-    """Training with ``surface_refine``: ``L_surf``'s PBR colour reads the roughness detached, so
-    the roughness learns from the pixels (``L_vol``) and its priors, not from the radiance
-    network, whose highlights are wider and dimmer than the pixels' (trial, issue 33)."""
     amp_heads: bool = False
     """bf16 autocast for the radiance / photon / material networks only (CUDA). The SDF, the
     NeuS density and the BSDF stay in fp32: a bf16 SDF near the surface is off by ~1e-3,
@@ -213,8 +209,7 @@ def render_rays(model, rays: RayBatch, cfg: RenderConfig, *, train: bool, cos_an
     if cfg.surface_refine and cfg.alpha_mode == "sample":
         xr, nr, fr, xj, fj, nj = refine_surface(model, o, d, sw.z, sw.sdf, sw.idx_max, jitter_sigma=jitter_sigma,
                                                 jitter_normals=request.jitter_normals)
-        p = shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray, logits=train, visibility=ray_vis,
-                         roughness_detached=train and cfg.surf_roughness_detached)
+        p = shade_points(model, cfg, shading, xr, d, nr, fr, unlit_ray, logits=train, visibility=ray_vis)
         rgb_surf = p.pbr
         surface = Surface(x=xr, normal=nr, direction=d, light_dir=p.light_dir, intensity=p.intensity,
                           albedo=p.albedo, roughness=p.roughness, metallic=p.metallic, material_logits=p.logits,

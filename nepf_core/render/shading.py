@@ -69,8 +69,7 @@ def _autocast(cfg, device: torch.device):
 
 
 def shade_points(model, cfg, shading: Shading, xs: Tensor, vs: Tensor, ns: Tensor, fs: Tensor,
-                 unlit: Tensor | None, *, logits: bool = False, visibility: Tensor | None = None,
-                 roughness_detached: bool = False) -> PointShading:
+                 unlit: Tensor | None, *, logits: bool = False, visibility: Tensor | None = None) -> PointShading:
     """Photon + material heads and the BSDF at ``N`` points: ``xs, vs, ns [N, 3]`` (position,
     ray direction, unit normal), ``fs [N, F]`` SDF features, ``unlit [N]`` bool or None. With
     ``cfg.unlit_albedo_stopgrad`` the colour error of an unlit point does not reach its albedo
@@ -80,9 +79,7 @@ def shade_points(model, cfg, shading: Shading, xs: Tensor, vs: Tensor, ns: Tenso
     scaled by ``visibility [N, K]`` (None: all seen), and where that visibility is traced a dark
     pixel counts as unlit only if its point is dark under the emitters too
     (:func:`~nepf_core.fields.emitters.dark_under_emitters`): the pixel alone cannot tell a black
-    texture from a shadow, the traced shadows can (docs/FAST.md, "The light model").
-    ``roughness_detached``: the BSDF reads the roughness detached (the colour error does not
-    reach it; :attr:`~nepf_core.render.renderer.RenderConfig.surf_roughness_detached`)."""
+    texture from a shadow, the traced shadows can (docs/FAST.md, "The light model")."""
     with _autocast(cfg, xs.device):
         if logits:
             albedo, rough, metal, z = model.material(xs, ns, fs, with_logits=True)
@@ -100,8 +97,7 @@ def shade_points(model, cfg, shading: Shading, xs: Tensor, vs: Tensor, ns: Tenso
         if visibility is not None:
             unlit = unlit & dark_under_emitters(dirs, irradiance, ns)
         albedo_shade = torch.where(unlit[:, None], albedo.detach(), albedo)
-    rough_shade = rough.detach() if roughness_detached else rough
-    pbr = sum(shade_one_light(cfg, shading, ns, dirs[:, k], -vs, albedo_shade, rough_shade, metal, irradiance[:, k])
+    pbr = sum(shade_one_light(cfg, shading, ns, dirs[:, k], -vs, albedo_shade, rough, metal, irradiance[:, k])
               for k in range(dirs.shape[1]))
     light_dir, intensity = dominant(dirs, irradiance, ns)
     return PointShading(pbr, light_dir, intensity, albedo, rough, metal, None if z is None else z.float(),
