@@ -55,7 +55,8 @@ def loss_albedo_fill(b: LossBatch) -> Tensor:
 def loss_brdf_smooth(b: LossBatch) -> Tensor:
     s = b.out.surface
     j = needs_input(s.jitter, "w_brdf_smooth", _JITTER)
-    return mean_where((s.roughness - j.roughness).abs() + (s.metallic - j.metallic).abs(), b.on_surf)
+    share = b.cfg.brdf_smooth_roughness_share
+    return mean_where(share * (s.roughness - j.roughness).abs() + (s.metallic - j.metallic).abs(), b.on_surf)
 
 
 def loss_material_range(b: LossBatch) -> Tensor:
