@@ -62,9 +62,6 @@ class LossConfig:
     """The smoothness prior of ``w_albedo_smooth`` for roughness and metallic:
     ``mean (|r(x*) - r(x* + eps)| + |m(x*) - m(x* + eps)|)``. With a smoothness prior on the albedo
     alone, a texture is cheaper to carry in metallic (a ``(1 - m)`` dimmer) than in the albedo."""
-    brdf_smooth_roughness_share: float = 1.0
-    """The roughness part's weight in ``w_brdf_smooth``, relative to the metallic's (trial, issue 33:
-    spot_svbrdf's roughness comes out one value where the truth is a 0.2 / 0.55 checker)."""
     w_material_range: float = 0.0
     """Keep the material network's raw outputs (albedo, roughness, metallic logits ``z``) within
     ``|z| <= material_logit_max``: ``mean relu(|z| - z_max)`` over surface rays. A sigmoid past

@@ -55,8 +55,7 @@ def loss_albedo_fill(b: LossBatch) -> Tensor:
 def loss_brdf_smooth(b: LossBatch) -> Tensor:
     s = b.out.surface
     j = needs_input(s.jitter, "w_brdf_smooth", _JITTER)
-    share = b.cfg.brdf_smooth_roughness_share
-    return mean_where(share * (s.roughness - j.roughness).abs() + (s.metallic - j.metallic).abs(), b.on_surf)
+    return mean_where((s.roughness - j.roughness).abs() + (s.metallic - j.metallic).abs(), b.on_surf)
 
 
 def loss_material_range(b: LossBatch) -> Tensor:
