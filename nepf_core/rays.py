@@ -37,9 +37,6 @@ class RayBatch:
     weight: Tensor | None = None
     """``[R]`` float, training only: importance weight of the ray in per-ray means of the
     mask loss (``1 / p_keep`` after :mod:`nepf_core.train.rules.empty_rays`; None: all 1)."""
-    drawn: Tensor | None = None
-    """``[R]`` long, training only: each ray's position in the batch as drawn, before a rule
-    thinned it (:mod:`nepf_core.train.pixel_importance` scores the draws); None: not tracked."""
 
     def __len__(self) -> int:
         return int(self.origins.shape[0])
@@ -50,8 +47,7 @@ class RayBatch:
                         None if self.mask is None else self.mask[a:b],
                         None if self.view is None else self.view[a:b],
                         None if self.unlit is None else self.unlit[a:b],
-                        None if self.weight is None else self.weight[a:b],
-                        None if self.drawn is None else self.drawn[a:b])
+                        None if self.weight is None else self.weight[a:b])
 
     def index(self, idx: Tensor) -> "RayBatch":
         return RayBatch(self.origins[idx], self.directions[idx],
@@ -59,8 +55,7 @@ class RayBatch:
                         None if self.mask is None else self.mask[idx],
                         None if self.view is None else self.view[idx],
                         None if self.unlit is None else self.unlit[idx],
-                        None if self.weight is None else self.weight[idx],
-                        None if self.drawn is None else self.drawn[idx])
+                        None if self.weight is None else self.weight[idx])
 
 
 def foreground_peaks(images: np.ndarray, masks: np.ndarray | None) -> np.ndarray:
@@ -108,8 +103,7 @@ class PixelSampler:
         self.K_inv = torch.linalg.inv(K).to(self.device, torch.float32)
         self.c2w = torch.from_numpy(scene.c2w.astype(np.float32)).to(self.device)
 
-    def rays_at(self, view: Tensor, row: Tensor, col: Tensor) -> RayBatch:
-        """The rays and supervision of pixels ``(view, row, col) [R]`` long, on the sampler's device."""
+    def _gather(self, view: Tensor, row: Tensor, col: Tensor) -> RayBatch:
         o, d = rays_from_pixels(self.K_inv[view], self.c2w[view], col.float() + 0.5, row.float() + 0.5)
         rgb = self.images[view, row, col].float()
         mask = None if self.masks is None else self.masks[view, row, col].float()
@@ -126,7 +120,7 @@ class PixelSampler:
             view = views[torch.randint(0, len(views), (n,), generator=g, device="cpu")]
         row = torch.randint(0, self.height, (n,), generator=g, device="cpu")
         col = torch.randint(0, self.width, (n,), generator=g, device="cpu")
-        return self.rays_at(view.to(dev), row.to(dev), col.to(dev))
+        return self._gather(view.to(dev), row.to(dev), col.to(dev))
 
     def view_rays(self, k: int, stride: int = 1) -> RayBatch:
         """All pixels of view ``k`` (every ``stride``-th row/column), row-major."""
@@ -134,4 +128,4 @@ class PixelSampler:
         cols = torch.arange(0, self.width, stride, device=self.device)
         rr, cc = torch.meshgrid(rows, cols, indexing="ij")
         view = torch.full_like(rr.reshape(-1), k)
-        return self.rays_at(view, rr.reshape(-1), cc.reshape(-1))
+        return self._gather(view, rr.reshape(-1), cc.reshape(-1))

@@ -27,16 +27,9 @@ def _losses(run):
     return {r["step"]: r["loss"] for r in recs if r.get("kind") == "train"}
 
 
-@pytest.mark.parametrize("importance", [0.0, 0.5])
-def test_resume_gives_the_same_losses_as_an_uninterrupted_run(small_scene, tmp_path, importance):
-    """Also with part of each batch drawn from the error map (train/pixel_importance.py): the
-    map is in the checkpoint, so the resumed run draws the same pixels."""
-    def _cfg_i():
-        cfg = _cfg()
-        cfg.train.importance_fraction = importance
-        return cfg
+def test_resume_gives_the_same_losses_as_an_uninterrupted_run(small_scene, tmp_path):
     a = tmp_path / "a"
-    fit(small_scene, a, _cfg_i(), device="cpu")
+    fit(small_scene, a, _cfg(), device="cpu")
     b = tmp_path / "b"
     stop_after = {"n": 0}
 
@@ -44,9 +37,9 @@ def test_resume_gives_the_same_losses_as_an_uninterrupted_run(small_scene, tmp_p
         stop_after["n"] += 1
         return stop_after["n"] > 3  # checked before each step: 3 steps run, then stop
 
-    r1 = fit(small_scene, b, _cfg_i(), device="cpu", callbacks=FitCallbacks(should_stop=should_stop))
+    r1 = fit(small_scene, b, _cfg(), device="cpu", callbacks=FitCallbacks(should_stop=should_stop))
     assert r1.status == "cancelled" and r1.step == 3
-    r2 = fit(small_scene, b, _cfg_i(), device="cpu", resume=True)
+    r2 = fit(small_scene, b, _cfg(), device="cpu", resume=True)
     assert r2.status == "succeeded" and r2.step == 6
     la, lb = _losses(a), _losses(b)
     assert sorted(la) == [1, 2, 3, 4, 5, 6]

@@ -45,7 +45,6 @@ from nepf_core.train.clock import TrainClock
 from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
 from nepf_core.train.hooks import TrainHooks
 from nepf_core.train.metal_record import MetalRecord
-from nepf_core.train.pixel_importance import PixelImportance, ray_errors
 from nepf_core.train.metrics_log import MetricsLog, plot_error_vs_time, write_json_atomic
 from nepf_core.train.result import FitError, FitResult
 from nepf_core.train.rules.callback import DataContext, EvaluationContext, ModelContext, StepBatch, StepEnd, StepStart
@@ -122,9 +121,6 @@ class TrainingRun:
         self.gen = torch.Generator().manual_seed(tc.seed)
         self.ema = ParamEMA(self.model, tc.ema_decay) if tc.ema_decay != 0 else None   # a negative one: ParamEMA says so
         self.sampler = PixelSampler(scene, dev)
-        # part of each batch where the radiance network fits worst (train/pixel_importance.py)
-        self.importance = (PixelImportance(scene.n_views, scene.height, scene.width, dev, tc.importance_fraction)
-                           if tc.importance_fraction > 0 else None)
         self.camera_centres = torch.as_tensor(np.asarray(scene.c2w)[:, :3, 3], dtype=torch.float32, device=dev)
         points = data.surface_points   # without masks: where the images saw a surface
         self.surface_points = (SurfacePointPrior(points, dev) if cfg.loss.w_surface_points > 0 and points is not None
@@ -168,8 +164,6 @@ class TrainingRun:
             self.ema.load_state_dict(extra["ema"])
         if self.metal_record is not None and "metal_record" in extra:
             self.metal_record.load_state_dict(extra["metal_record"])
-        if self.importance is not None and "pixel_importance" in extra:
-            self.importance.load_state_dict(extra["pixel_importance"])
         self.say(f"resumed from step {self.step}")
         return float(st["wall_s"])
 
@@ -240,12 +234,7 @@ class TrainingRun:
     def _train_step(self):
         """Draw, render, take the losses and the optimiser step; returns ``(rays, out, losses)``."""
         tc, rs, model = self.cfg.train, self.run_state, self.model
-        if self.importance is not None:
-            drawn = self.importance.draw(tc.batch_rays, self.gen)
-            rays = self.sampler.rays_at(*drawn)
-            rays.drawn = torch.arange(len(rays), device=rays.origins.device)
-        else:
-            rays = self.sampler.sample(tc.batch_rays, generator=self.gen)
+        rays = self.sampler.sample(tc.batch_rays, generator=self.gen)
         if self.unlit_thr is not None:
             rays.unlit = rays.rgb.amax(-1) < self.unlit_thr
         loss_cfg = rs.loss_config(self.cfg.loss)
@@ -287,10 +276,6 @@ class TrainingRun:
             if self.nonfinite > tc.max_nonfinite_steps:
                 raise FitError(f"training diverged: {self.nonfinite} steps had a non-finite loss or gradient "
                                f"(limit {tc.max_nonfinite_steps}); last at step {self.step}")
-        if self.importance is not None:   # every draw scored; a miss the rules left out shows no error
-            err = torch.zeros(len(drawn[0]), device=rays.origins.device)
-            err[rays.drawn] = ray_errors(out.rgb_r, rays.rgb, rays.mask, out.weight_sum)
-            self.importance.update(*drawn, err)
         self.step += 1
         return rays, out, losses
 
@@ -377,8 +362,6 @@ class TrainingRun:
                 extra["ema"] = self.ema.state_dict()
             if self.metal_record is not None:
                 extra["metal_record"] = self.metal_record.state_dict()
-            if self.importance is not None:
-                extra["pixel_importance"] = self.importance.state_dict()
             kw = dict(model=self.model, optimizer=self.optimizer, step=self.step, wall_s=self.clock.wall(),
                       generator=self.gen, extra=extra)
             save_checkpoint(self.dir / "checkpoints" / f"ckpt_{self.step:07d}.pt", **kw)
