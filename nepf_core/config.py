@@ -111,10 +111,9 @@ class NePFConfig:
         if self.loss.w_material_evidence > 0 and self.render.bsdf_kind != "gltf":
             raise ValueError("loss.w_material_evidence > 0 needs render.bsdf_kind = \"gltf\" (the evidence fits "
                              "the glTF BSDF); set it, or set the weight to 0")
-        for name in ("w_albedo_fill", "w_metallic_fill"):
-            if getattr(self.loss, name) > 0 and self.model.light != "emitters":
-                raise ValueError(f"loss.{name} > 0 needs model.light = \"emitters\" (the prior finds the points no "
-                                 "light reaches by the traced shadows); set it, or set the weight to 0")
+        if self.loss.w_albedo_fill > 0 and self.model.light != "emitters":
+            raise ValueError("loss.w_albedo_fill > 0 needs model.light = \"emitters\" (the prior finds the points no "
+                             "light reaches by the traced shadows); set it, or set the weight to 0")
 
     @staticmethod
     def from_dict(d: dict) -> "NePFConfig":
@@ -211,7 +210,7 @@ def fast() -> NePFConfig:
                             eikonal_fraction=0.1, unlit_albedo_stopgrad=True, albedo_smooth_sigma=0.02,
                             surface_refine=True, bsdf_kind="gltf"),
         loss=LossConfig(w_hessian=0.0, w_surface_points=0.1, w_albedo_smooth=2e-4, w_albedo_flat=3e-6,
-                        w_albedo_fill=2e-5, w_metallic_fill=1e-3, w_brdf_smooth=2e-4, w_material_range=1e-4, w_colour_range=1e-2,
+                        w_albedo_fill=2e-5, w_brdf_smooth=2e-4, w_material_range=1e-4, w_colour_range=1e-2,
                         w_metallic_unseen=1e-4, w_material_evidence=1e-3, w_normal_smooth=0.025, w_light=0.0,
                         lambda4=0.0, lambda5=0.0),
         train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,

@@ -265,31 +265,3 @@ def test_the_fill_prior_needs_the_traced_emitters():
     cfg.model.light = "photon"
     with pytest.raises(ValueError, match="w_albedo_fill > 0 needs model.light"):
         cfg.check()
-
-
-def test_shadowed_points_take_the_metallic_of_the_nearest_lit_point():
-    """``loss_metallic_fill`` by hand: lit metal at x = 0 (m 0.9) and lit dielectric at x = 1
-    (m 0.1); shadowed rays at x = 0.1 (m 0.2) and x = 0.95 (m 0.5) take their nearest lit
-    neighbour's value, so the loss is ``(|0.2 - 0.9| + |0.5 - 0.1|) / 5 surface rays``. A dark
-    pixel under the light (a black texture) and a ray off the surface are left alone, and only
-    the shadowed rays move (the lit ones are stop-grad targets)."""
-    from types import SimpleNamespace
-
-    from nepf_core.losses.material import loss_metallic_fill
-    x = torch.tensor([[0.0, 0, 0], [1.0, 0, 0], [0.1, 0, 0], [0.95, 0, 0], [0.5, 0, 0], [0.5, 0.5, 0]])
-    metallic = torch.tensor([0.9, 0.1, 0.2, 0.5, 0.3, 0.7], requires_grad=True)
-    n = torch.tensor([[0.0, 0.0, 1.0]]).expand(6, 3)
-    dirs = torch.tensor([0.0, 0.0, 1.0]).expand(6, 1, 3)
-    e = torch.tensor([[1.0], [1.0], [0.0], [0.0], [1.0], [0.0]])   # rays 2, 3 (and 5, off the surface) in shadow
-    surface = SimpleNamespace(x=x, metallic=metallic, normal=n, lights=(dirs, e))
-    b = SimpleNamespace(out=SimpleNamespace(surface=surface), zero=torch.zeros(()),
-                        on_surf=torch.tensor([True, True, True, True, True, False]),
-                        lit=torch.tensor([True, True, False, False, False, False]))
-    loss = loss_metallic_fill(b)
-    assert float(loss.detach()) == pytest.approx((0.7 + 0.4) / 5)
-    loss.backward()
-    assert metallic.grad[2] < 0 < metallic.grad[3]   # descent: 0.2 up to the metal, 0.5 down to 0.1
-    assert torch.all(metallic.grad[[0, 1, 4, 5]] == 0)
-    surface.lights = None
-    with pytest.raises(ValueError, match="w_metallic_fill > 0 needs model.light"):
-        loss_metallic_fill(b)

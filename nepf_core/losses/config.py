@@ -58,14 +58,6 @@ class LossConfig:
     v56, v58). The batch's mean is the least-informed guess and says nothing about texture; the
     weight stays 10x under the smoothness prior's, because at its weight the pull flattened the
     lit texture too (spot_textured's lit albedo 16.5 -> 12.5 dB, v58)."""
-    w_metallic_fill: float = 0.0
-    """Where no light reaches, the metallic of the nearest lit surface point: ``mean_surf
-    [shadowed] |m(x*) - sg(m(x_nn))|``, ``x_nn`` the nearest (3D) bright surface point of the
-    batch, ``shadowed`` and ``bright`` as in ``w_albedo_fill``; needs ``model.light =
-    "emitters"``. No training pixel shows a shadowed point's metallic, and the network keeps its
-    dielectric start there: bunny_metal's unlit third came out dielectric (bench/RESULTS.md v46,
-    v61). The nearest lit point, not the batch's mean, so that a mixed scene's metal and
-    dielectric regions each fill their own shadows."""
     w_brdf_smooth: float = 0.0
     """The smoothness prior of ``w_albedo_smooth`` for roughness and metallic:
     ``mean (|r(x*) - r(x* + eps)| + |m(x*) - m(x* + eps)|)``. With a smoothness prior on the albedo

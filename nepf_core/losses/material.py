@@ -5,8 +5,6 @@ range, and the metal terms.
     L_flat   = w_albedo_flat * mean_lit | Y(c) / sg(mean_lit Y(c)) - 1 |, Y = channel mean  (lobe off only)
     L_fill   = w_albedo_fill * mean_surf [shadowed] | c(x*) - sg(mean_bright c) |
                (shadowed: unlit pixel and dark under the traced emitters; bright: lit and not dark)
-    L_mfill  = w_metallic_fill * mean_surf [shadowed] | m(x*) - sg(m(x_nn)) |
-               (x_nn: the nearest bright surface point of the batch, shadowed / bright as in L_fill)
     L_bsm    = w_brdf_smooth * mean_surf (|r(x*) - r(x* + e)| + |m(x*) - m(x* + e)|)
     L_range  = w_material_range * mean_surf mean_k relu(|z_k| - z_max)   (z: material logits)
     L_unseen = w_metallic_unseen * mean_lit m (1 - s) (1 - share)
@@ -22,7 +20,6 @@ range, and the metal terms.
 
 from __future__ import annotations
 
-import torch
 from torch import Tensor
 
 from nepf_core.fields.emitters import dark_under_emitters
@@ -53,19 +50,6 @@ def loss_albedo_fill(b: LossBatch) -> Tensor:
         return b.zero
     target = s.albedo[bright].detach().mean(0)
     return (s.albedo[shadowed] - target).abs().mean(-1).sum() / b.on_surf.sum()
-
-
-def loss_metallic_fill(b: LossBatch) -> Tensor:
-    s = b.out.surface
-    lights = needs_input(s.lights, "w_metallic_fill", 'model.light = "emitters" (the traced emitters\' irradiance)')
-    dark = dark_under_emitters(*lights, s.normal, among=b.on_surf)
-    shadowed, bright = b.on_surf & ~b.lit & dark, b.lit & ~dark
-    if not shadowed.any() or not bright.any():
-        return b.zero
-    xs, xb = s.x.detach()[shadowed], s.x.detach()[bright]
-    nearest = torch.cdist(xs, xb).argmin(-1)
-    target = s.metallic.detach()[bright][nearest]
-    return (s.metallic[shadowed] - target).abs().sum() / b.on_surf.sum()
 
 
 def loss_brdf_smooth(b: LossBatch) -> Tensor:

@@ -20,8 +20,7 @@ from nepf_core.losses.geometry import (loss_eikonal, loss_hessian, loss_mask, lo
                                        loss_surface_points)
 from nepf_core.losses.light import loss_light
 from nepf_core.losses.material import (loss_albedo_fill, loss_albedo_flat, loss_albedo_smooth, loss_brdf_smooth,
-                                       loss_material_evidence, loss_material_range, loss_metallic_fill,
-                                       loss_metallic_unseen)
+                                       loss_material_evidence, loss_material_range, loss_metallic_unseen)
 from nepf_core.rays import RayBatch
 
 
@@ -54,7 +53,6 @@ LOSS_TERMS: tuple[LossTerm, ...] = (
     LossTerm("loss_albedo_smooth", "w_albedo_smooth", loss_albedo_smooth),
     LossTerm("loss_albedo_flat", "w_albedo_flat", loss_albedo_flat),
     LossTerm("loss_albedo_fill", "w_albedo_fill", loss_albedo_fill),
-    LossTerm("loss_metallic_fill", "w_metallic_fill", loss_metallic_fill),
     LossTerm("loss_brdf_smooth", "w_brdf_smooth", loss_brdf_smooth),
     LossTerm("loss_normal_smooth", "w_normal_smooth", loss_normal_smooth, jitter_normals=True,
              present=lambda b: b.out.surface.jitter is not None and b.out.surface.jitter.normal is not None),
