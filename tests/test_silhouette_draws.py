@@ -1,0 +1,57 @@
+"""The silhouette band and its share of a training batch (train/silhouette_draws.py)."""
+
+import numpy as np
+import pytest
+import torch
+
+from nepf_core.train.silhouette_draws import SilhouetteDraws, silhouette_band
+
+
+def test_the_band_is_the_pixels_within_r_of_the_other_side():
+    """A 10x10 square in a 20x20 view: a pixel is in the band iff its Chebyshev distance to a
+    pixel of the other side is <= r (computed by brute force here)."""
+    m = torch.zeros(1, 20, 20)
+    m[0, 5:15, 5:15] = 1.0
+    band = silhouette_band(m, radius=2)[0].numpy()
+    fg = m[0].numpy() > 0.5
+    ys, xs = np.mgrid[0:20, 0:20]
+    expect = np.zeros((20, 20), bool)
+    for y in range(20):
+        for x in range(20):
+            near = (np.abs(ys - y) <= 2) & (np.abs(xs - x) <= 2)
+            expect[y, x] = fg[near].any() and (~fg[near]).any()
+    assert np.array_equal(band, expect)
+    assert band.sum() == 14 * 14 - 6 * 6   # the 5-pixel ring from 3 to 16
+
+
+def test_a_batch_takes_its_share_from_the_band_and_the_rest_uniform():
+    m = torch.zeros(3, 16, 16)
+    m[:, 4:12, 4:12] = 1.0
+    draws = SilhouetteDraws(m, 0.25)
+    band = silhouette_band(m)
+    assert draws.count(1000) == 250
+    v, r, c = draws.draw(5000, torch.Generator().manual_seed(0))
+    assert band[v, r, c].all()                              # every draw lies in the band
+    assert set(v.tolist()) == {0, 1, 2}                     # of every view
+    assert SilhouetteDraws(torch.ones(2, 8, 8), 0.25).count(1000) == 0   # no silhouette: all uniform
+    with pytest.raises(ValueError, match="silhouette_fraction"):
+        SilhouetteDraws(m, 0.0)
+
+
+def test_the_sampler_draws_the_last_part_of_the_batch_from_the_band():
+    from types import SimpleNamespace
+
+    from nepf_core.rays import PixelSampler
+    m = np.zeros((2, 16, 16), np.float32)
+    m[:, 4:12, 4:12] = 1.0
+    K = np.array([[16.0, 0, 8], [0, 16.0, 8], [0, 0, 1]])
+    scene = SimpleNamespace(n_views=2, height=16, width=16, images=np.random.rand(2, 16, 16, 3).astype(np.float32),
+                            masks=m, intrinsics=np.stack([K, K]), c2w=np.stack([np.eye(4)] * 2).astype(np.float32))
+    sampler = PixelSampler(scene)
+    draws = SilhouetteDraws(torch.from_numpy(m), 0.5)
+    rays = sampler.sample(400, torch.Generator().manual_seed(0), band=draws)
+    assert len(rays) == 400
+    # the mask at the band draws is mixed: about half of them land on the object
+    assert 0.3 < float(rays.mask[200:].mean()) < 0.7
+    # uniform draws hit the 8x8 square a quarter of the time
+    assert 0.15 < float(rays.mask[:200].mean()) < 0.35
