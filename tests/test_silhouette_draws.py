@@ -33,7 +33,11 @@ def test_a_batch_takes_its_share_from_the_band_and_the_rest_uniform():
     v, r, c = draws.draw(5000, torch.Generator().manual_seed(0))
     assert band[v, r, c].all()                              # every draw lies in the band
     assert set(v.tolist()) == {0, 1, 2}                     # of every view
-    assert SilhouetteDraws(torch.ones(2, 8, 8), 0.25).count(1000) == 0   # no silhouette: all uniform
+    rec = draws.decision().as_record()
+    assert rec["value"] == {"band_pixel_fraction": round(float(band.float().mean()), 4), "batch_fraction": 0.25}
+    none = SilhouetteDraws(torch.ones(2, 8, 8), 0.25)
+    assert none.count(1000) == 0                                   # no silhouette: all uniform
+    assert none.decision().value["batch_fraction"] == 0.0 and "uniformly" in none.decision().reason
     with pytest.raises(ValueError, match="silhouette_fraction"):
         SilhouetteDraws(m, 0.0)
 
@@ -55,3 +59,22 @@ def test_the_sampler_draws_the_last_part_of_the_batch_from_the_band():
     assert 0.3 < float(rays.mask[200:].mean()) < 0.7
     # uniform draws hit the 8x8 square a quarter of the time
     assert 0.15 < float(rays.mask[:200].mean()) < 0.35
+
+
+def test_a_fit_with_masks_records_the_band_and_draws_from_it(small_scene, tmp_path):
+    """A short fit with ``train.silhouette_fraction`` records the band's share of the pixels
+    (computed here from the scene's own masks) and the batch's share in ``report.json``."""
+    import json
+
+    from nepf_core.config import tiny
+    from nepf_core.train import fit
+    assert small_scene.masks is not None
+    cfg = tiny()
+    cfg.train.iters, cfg.train.batch_rays, cfg.train.sync_every = 2, 64, 0
+    cfg.train.silhouette_fraction = 0.5
+    fit(small_scene, tmp_path / "r", cfg, device="cpu")
+    rep = json.loads((tmp_path / "r" / "report.json").read_text())
+    (dec,) = [d for d in rep["decisions"] if d["decision"] == "silhouette_draws"]
+    share = float(silhouette_band(torch.as_tensor(small_scene.masks)).float().mean())
+    assert dec["value"] == {"band_pixel_fraction": round(share, 4), "batch_fraction": 0.5}
+    assert 0 < share < 0.5

@@ -125,6 +125,8 @@ class TrainingRun:
         # part of each batch from the masks' silhouette band (train/silhouette_draws.py)
         self.band = (SilhouetteDraws(torch.as_tensor(scene.masks), tc.silhouette_fraction)
                      if tc.silhouette_fraction > 0 and scene.masks is not None else None)
+        if self.band is not None:
+            self.adaptivity.log_decision(self.band.decision())
         self.camera_centres = torch.as_tensor(np.asarray(scene.c2w)[:, :3, 3], dtype=torch.float32, device=dev)
         points = data.surface_points   # without masks: where the images saw a surface
         self.surface_points = (SurfacePointPrior(points, dev) if cfg.loss.w_surface_points > 0 and points is not None

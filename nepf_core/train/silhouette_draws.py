@@ -22,6 +22,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from nepf_core.train.decisions import Decision
+
 BAND_RADIUS = 2
 """``r`` in pixels: the band is ``2r + 1`` = 5 pixels wide across the silhouette."""
 
@@ -42,7 +44,8 @@ class SilhouetteDraws:
     def __init__(self, masks: Tensor, fraction: float, radius: int = BAND_RADIUS) -> None:
         if not 0.0 < fraction <= 1.0:
             raise ValueError(f"train.silhouette_fraction must be in (0, 1] (got {fraction})")
-        self.fraction = fraction
+        self.fraction, self.radius = fraction, radius
+        self.n_pixels = int(masks.numel())
         self.height, self.width = int(masks.shape[1]), int(masks.shape[2])
         band = torch.cat([silhouette_band(masks[i:i + 1], radius) for i in range(masks.shape[0])])
         self.pixels = band.reshape(-1).nonzero()[:, 0].cpu()
@@ -57,3 +60,13 @@ class SilhouetteDraws:
         i = self.pixels[torch.randint(0, self.pixels.numel(), (n,), generator=generator)]
         hw = self.height * self.width
         return i // hw, (i % hw) // self.width, i % self.width
+
+    def decision(self) -> Decision:
+        """The run's record: the band's share of the training pixels and of each batch."""
+        share = self.pixels.numel() / max(1, self.n_pixels)
+        drawn = self.fraction if self.pixels.numel() else 0.0
+        return Decision("silhouette_draws", {"band_pixel_fraction": round(share, 4), "batch_fraction": drawn},
+                        f"{100 * share:.1f}% of the training pixels lie within {self.radius} px of a mask's silhouette; "
+                        + (f"{100 * drawn:.0f}% of each batch is drawn there (the mask loss and the geometry learn "
+                           "where the surface ends), the rest uniformly" if drawn else
+                           "the masks show no silhouette, so every pixel is drawn uniformly"))
