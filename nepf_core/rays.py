@@ -110,10 +110,8 @@ class PixelSampler:
         return RayBatch(o, d, rgb, mask, view)
 
     def sample(self, n: int, generator: torch.Generator | None = None,
-               views: Tensor | None = None, band=None) -> RayBatch:
-        """``n`` rays at uniformly random pixels (of ``views`` when given); with ``band`` (a
-        :class:`~nepf_core.train.silhouette_draws.SilhouetteDraws`, all views only) its share of
-        them from the silhouette band."""
+               views: Tensor | None = None) -> RayBatch:
+        """``n`` rays at uniformly random pixels (of ``views`` when given)."""
         g = generator
         dev = self.device
         if views is None:
@@ -122,10 +120,6 @@ class PixelSampler:
             view = views[torch.randint(0, len(views), (n,), generator=g, device="cpu")]
         row = torch.randint(0, self.height, (n,), generator=g, device="cpu")
         col = torch.randint(0, self.width, (n,), generator=g, device="cpu")
-        if band is not None and views is None and band.count(n) > 0:   # the last part from the silhouette band
-            k = band.count(n)
-            bv, br, bc = band.draw(k, generator=g)
-            view, row, col = torch.cat([view[:n - k], bv]), torch.cat([row[:n - k], br]), torch.cat([col[:n - k], bc])
         return self._gather(view.to(dev), row.to(dev), col.to(dev))
 
     def view_rays(self, k: int, stride: int = 1) -> RayBatch:
