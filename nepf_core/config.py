@@ -53,10 +53,6 @@ class TrainConfig:
     """A target pixel is unlit when ``max_c L_gt < unlit_rel_threshold * q99(foreground)``
     (:func:`nepf_core.rays.unlit_threshold`): such pixels do not train the albedo
     (``render.unlit_albedo_stopgrad``) and are left out of the lit-pixel metrics."""
-    silhouette_fraction: float = 0.0
-    """Share of each batch drawn from a 5-pixel band around the masks' silhouettes
-    (:mod:`nepf_core.train.silhouette_draws`); the rest uniform; the colour terms weigh each ray by its importance, so only the geometry sees the extra edge rays. 0, or no masks: every pixel
-    uniform (the paper)."""
     max_nonfinite_steps: int = 50
     """Fail the run after this many skipped (non-finite) steps."""
     grad_clip: float = 0.0
@@ -219,8 +215,7 @@ def fast() -> NePFConfig:
                         lambda4=0.0, lambda5=0.0),
         train=TrainConfig(iters=20_000, batch_rays=1024, lr=5e-3, lr_grid=2e-2, warmup_steps=200,
                           anneal_end=2000, log_every=20, sync_every=500, checkpoint_every=1000,
-                          eval_every_s=60.0, eval_stride=1, ema_decay=0.995, adaptive=True,
-                          silhouette_fraction=0.25),
+                          eval_every_s=60.0, eval_stride=1, ema_decay=0.995, adaptive=True),
     )
 
 

@@ -37,9 +37,6 @@ class RayBatch:
     weight: Tensor | None = None
     """``[R]`` float, training only: importance weight of the ray in per-ray means of the
     mask loss (``1 / p_keep`` after :mod:`nepf_core.train.rules.empty_rays`; None: all 1)."""
-    draw_q: Tensor | None = None
-    """``[R]`` float, training only: the uniform pixel density over the density the ray was drawn
-    with (:mod:`nepf_core.train.silhouette_draws`); weighs the colour terms (None: all 1)."""
 
     def __len__(self) -> int:
         return int(self.origins.shape[0])
@@ -50,8 +47,7 @@ class RayBatch:
                         None if self.mask is None else self.mask[a:b],
                         None if self.view is None else self.view[a:b],
                         None if self.unlit is None else self.unlit[a:b],
-                        None if self.weight is None else self.weight[a:b],
-                        None if self.draw_q is None else self.draw_q[a:b])
+                        None if self.weight is None else self.weight[a:b])
 
     def index(self, idx: Tensor) -> "RayBatch":
         return RayBatch(self.origins[idx], self.directions[idx],
@@ -59,8 +55,7 @@ class RayBatch:
                         None if self.mask is None else self.mask[idx],
                         None if self.view is None else self.view[idx],
                         None if self.unlit is None else self.unlit[idx],
-                        None if self.weight is None else self.weight[idx],
-                        None if self.draw_q is None else self.draw_q[idx])
+                        None if self.weight is None else self.weight[idx])
 
 
 def foreground_peaks(images: np.ndarray, masks: np.ndarray | None) -> np.ndarray:
@@ -115,10 +110,8 @@ class PixelSampler:
         return RayBatch(o, d, rgb, mask, view)
 
     def sample(self, n: int, generator: torch.Generator | None = None,
-               views: Tensor | None = None, band=None) -> RayBatch:
-        """``n`` rays at uniformly random pixels (of ``views`` when given); with ``band`` (a
-        :class:`~nepf_core.train.silhouette_draws.SilhouetteDraws`, all views only) its share of
-        them from the silhouette band."""
+               views: Tensor | None = None) -> RayBatch:
+        """``n`` rays at uniformly random pixels (of ``views`` when given)."""
         g = generator
         dev = self.device
         if views is None:
@@ -127,13 +120,6 @@ class PixelSampler:
             view = views[torch.randint(0, len(views), (n,), generator=g, device="cpu")]
         row = torch.randint(0, self.height, (n,), generator=g, device="cpu")
         col = torch.randint(0, self.width, (n,), generator=g, device="cpu")
-        if band is not None and views is None and band.count(n) > 0:   # the last part from the silhouette band
-            k = band.count(n)
-            bv, br, bc = band.draw(k, generator=g)
-            view, row, col = torch.cat([view[:n - k], bv]), torch.cat([row[:n - k], br]), torch.cat([col[:n - k], bc])
-            rays = self._gather(view.to(dev), row.to(dev), col.to(dev))
-            rays.draw_q = band.importance(view, row, col, n).to(dev, rays.origins.dtype)
-            return rays
         return self._gather(view.to(dev), row.to(dev), col.to(dev))
 
     def view_rays(self, k: int, stride: int = 1) -> RayBatch:

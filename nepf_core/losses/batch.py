@@ -4,10 +4,7 @@ terms share, built once by :func:`loss_batch`) and the reductions they average w
 Colour terms compare display-space values ``srgb(.)`` (``docs/ARCHITECTURE.md``). With masks the
 colour means run over foreground rays only (NeuS); with masks and a background volume, ``L_bg``
 trains the rays outside the masks, averaged over those rays alone, so that the foreground terms
-keep their scale. A batch not drawn uniformly (``RayBatch.draw_q``,
-:mod:`nepf_core.train.silhouette_draws`) weighs ``L_r``, ``L_vol`` and ``L_surf`` by each ray's
-importance, so they stay means over uniformly drawn pixels. The surface terms use only rays that
-hit a surface (the mask, or
+keep their scale. The surface terms use only rays that hit a surface (the mask, or
 :func:`~nepf_core.render.neus.foreground` without one).
 """
 
@@ -87,8 +84,6 @@ class LossBatch:
     """``[R (+ B)]`` L_bg's per-ray importance (None: 1)."""
     surf_rays: Tensor
     """``[R]`` float: the rays that end on a surface (mask, or :func:`foreground`)."""
-    surf_w: Tensor
-    """``[R]`` ``surf_rays`` times the draw's importance ``RayBatch.draw_q``: L_surf's weight."""
     on_surf: Tensor
     """``[R]`` bool, ``surf_rays > 0.5``."""
     lit: Tensor
@@ -123,24 +118,14 @@ def loss_batch(out, rays: RayBatch, cfg: LossConfig, *, use_mask: bool, specular
         fg_all = None if fg is None else torch.cat([fg, bg_rays.mask])
         bg_q = bg_rays.weight if bg_rays.weight is not None else torch.ones_like(bg_enc[:, 0])
         colour_q = outside_q = torch.cat([torch.ones_like(gt[:, 0]), bg_q])
-    if rays.draw_q is not None:   # a batch not drawn uniformly: the colour means stay the uniform ones
-        draw_q = rays.draw_q if background_rays is None else torch.cat([rays.draw_q, _draw_q(background_rays[1])])
-        colour_q = draw_q if colour_q is None else colour_q * draw_q
     colour_w = fg_all if colour_q is None else (colour_q if fg_all is None else fg_all * colour_q)
     surf_rays = fg if fg is not None else foreground(out.weight_sum).float()
-    surf_w = surf_rays if rays.draw_q is None else surf_rays * rays.draw_q
     on_surf = surf_rays > 0.5
     lit = on_surf & ~rays.unlit if rays.unlit is not None else on_surf
     return LossBatch(out=out, rays=rays, cfg=cfg, use_mask=use_mask, specular=specular, background=background,
                      zero=zero, gt=gt, fg=fg, r_sdf=r_sdf, r_enc=r_enc, vol_enc=vol_enc, gt_all=gt_all,
-                     colour_w=colour_w, fg_all=fg_all, outside_q=outside_q, surf_rays=surf_rays, surf_w=surf_w,
-                     on_surf=on_surf,
+                     colour_w=colour_w, fg_all=fg_all, outside_q=outside_q, surf_rays=surf_rays, on_surf=on_surf,
                      lit=lit, surface_points=surface_points)
-
-
-def _draw_q(rays: RayBatch) -> Tensor:
-    """``rays.draw_q``, or ones ``[R]`` when the rays were drawn uniformly."""
-    return rays.draw_q if rays.draw_q is not None else torch.ones_like(rays.origins[:, 0])
 
 
 def needs_input(thing, weight: str, what: str):

@@ -32,9 +32,9 @@ def loss_background(b: LossBatch) -> Tensor:
 
 
 def loss_surface(b: LossBatch) -> Tensor:
-    wt = b.surf_w * (1.0 - b.out.w_max.detach())
+    wt = b.surf_rays * (1.0 - b.out.w_max.detach())
     err = (linear_to_srgb(b.out.rgb_surf) - b.r_sdf.detach()).abs().mean(-1)
-    return (err * wt).sum() / b.surf_w.sum().clamp_min(1.0)
+    return (err * wt).sum() / b.surf_rays.sum().clamp_min(1.0)
 
 
 def loss_volume(b: LossBatch) -> Tensor:

@@ -45,7 +45,6 @@ from nepf_core.train.clock import TrainClock
 from nepf_core.train.evaluation import EvalTargets, evaluate_test, sync_psnr
 from nepf_core.train.hooks import TrainHooks
 from nepf_core.train.metal_record import MetalRecord
-from nepf_core.train.silhouette_draws import SilhouetteDraws
 from nepf_core.train.metrics_log import MetricsLog, plot_error_vs_time, write_json_atomic
 from nepf_core.train.result import FitError, FitResult
 from nepf_core.train.rules.callback import DataContext, EvaluationContext, ModelContext, StepBatch, StepEnd, StepStart
@@ -122,11 +121,6 @@ class TrainingRun:
         self.gen = torch.Generator().manual_seed(tc.seed)
         self.ema = ParamEMA(self.model, tc.ema_decay) if tc.ema_decay != 0 else None   # a negative one: ParamEMA says so
         self.sampler = PixelSampler(scene, dev)
-        # part of each batch from the masks' silhouette band (train/silhouette_draws.py)
-        self.band = (SilhouetteDraws(torch.as_tensor(scene.masks), tc.silhouette_fraction)
-                     if tc.silhouette_fraction > 0 and scene.masks is not None else None)
-        if self.band is not None:
-            self.adaptivity.log_decision(self.band.decision())
         self.camera_centres = torch.as_tensor(np.asarray(scene.c2w)[:, :3, 3], dtype=torch.float32, device=dev)
         points = data.surface_points   # without masks: where the images saw a surface
         self.surface_points = (SurfacePointPrior(points, dev) if cfg.loss.w_surface_points > 0 and points is not None
@@ -240,7 +234,7 @@ class TrainingRun:
     def _train_step(self):
         """Draw, render, take the losses and the optimiser step; returns ``(rays, out, losses)``."""
         tc, rs, model = self.cfg.train, self.run_state, self.model
-        rays = self.sampler.sample(tc.batch_rays, generator=self.gen, band=self.band)
+        rays = self.sampler.sample(tc.batch_rays, generator=self.gen)
         if self.unlit_thr is not None:
             rays.unlit = rays.rgb.amax(-1) < self.unlit_thr
         loss_cfg = rs.loss_config(self.cfg.loss)
