@@ -103,8 +103,10 @@ class PixelSampler:
         self.K_inv = torch.linalg.inv(K).to(self.device, torch.float32)
         self.c2w = torch.from_numpy(scene.c2w.astype(np.float32)).to(self.device)
 
-    def _gather(self, view: Tensor, row: Tensor, col: Tensor) -> RayBatch:
-        o, d = rays_from_pixels(self.K_inv[view], self.c2w[view], col.float() + 0.5, row.float() + 0.5)
+    def _gather(self, view: Tensor, row: Tensor, col: Tensor, at: tuple[float, float] = (0.5, 0.5)) -> RayBatch:
+        """The rays through ``(col + at[0], row + at[1])`` (``at``: the point within the pixel,
+        ``(0.5, 0.5)`` its centre) with the pixels' colour and mask."""
+        o, d = rays_from_pixels(self.K_inv[view], self.c2w[view], col.float() + at[0], row.float() + at[1])
         rgb = self.images[view, row, col].float()
         mask = None if self.masks is None else self.masks[view, row, col].float()
         return RayBatch(o, d, rgb, mask, view)
@@ -122,10 +124,11 @@ class PixelSampler:
         col = torch.randint(0, self.width, (n,), generator=g, device="cpu")
         return self._gather(view.to(dev), row.to(dev), col.to(dev))
 
-    def view_rays(self, k: int, stride: int = 1) -> RayBatch:
-        """All pixels of view ``k`` (every ``stride``-th row/column), row-major."""
+    def view_rays(self, k: int, stride: int = 1, at: tuple[float, float] = (0.5, 0.5)) -> RayBatch:
+        """All pixels of view ``k`` (every ``stride``-th row/column), row-major, each ray through
+        the point ``at`` (x, y in [0, 1)) of its pixel: the centre by default."""
         rows = torch.arange(0, self.height, stride, device=self.device)
         cols = torch.arange(0, self.width, stride, device=self.device)
         rr, cc = torch.meshgrid(rows, cols, indexing="ij")
         view = torch.full_like(rr.reshape(-1), k)
-        return self._gather(view, rr.reshape(-1), cc.reshape(-1))
+        return self._gather(view, rr.reshape(-1), cc.reshape(-1), at)

@@ -71,12 +71,54 @@ def top_camera(size=5, height=0.8, focal=20.0) -> Scene:
 
 
 def relight_centre(query, light_dir, intensity=3.0, dist=2.0, shadows=True):
+    """The centre pixel's one ray through its centre (``subsamples=1``): exactly the -z ray."""
     sampler = PixelSampler(top_camera(), "cpu")
     pos = np.asarray(light_dir, np.float64) * dist
     trace = TraceConfig(hit_eps=1e-6, min_step=1e-7)   # the hit point within 1e-6 of the surface
     rgb, alpha = relight_views(query_surfaces(query, trace), query.sdf, sampler, pos[None],
-                               np.full((1, 3), intensity), ShadeOptions(kind="gltf"), shadows=shadows)
+                               np.full((1, 3), intensity), ShadeOptions(kind="gltf"), shadows=shadows,
+                               subsamples=1)
     return rgb[0, 0, 2, 2], alpha[0, 2, 2]
+
+
+class HalfPatch(Patch):
+    """The patch cut at ``x = edge``: the box ``x <= edge, -0.2 <= z <= 0`` (unbounded in y)."""
+
+    def __init__(self, edge):
+        super().__init__()
+        self.edge = edge
+
+    def sdf(self, x):
+        q = torch.stack([x[:, 0] - self.edge, -x[:, 2] - 0.1], -1)
+        q = torch.stack([q[:, 0], q[:, 1].abs() - 0.1], -1)   # box half-width 0.1 in z around -0.1
+        return q.clamp_min(0.0).norm(dim=-1) + q.amax(-1).clamp_max(0.0)
+
+
+def test_a_pixel_the_silhouette_cuts_averages_its_subpixels():
+    """The top camera (focal 20 px, 0.8 above the patch): the centre pixel spans x in [-0.02, 0.02]
+    and its 2 x 2 sub-pixel rays meet the plane at x = -0.01 and +0.01. With the patch's edge at
+    x = 0.005 two of the four hit, at (-0.01, +-0.01, 0): coverage 1/2 and a quarter of the sum of
+    those two points' glTF shading (the reference above). One ray through the centre calls the
+    pixel fully covered."""
+    sampler = PixelSampler(top_camera(), "cpu")
+    trace = TraceConfig(hit_eps=1e-6, min_step=1e-7)
+    q = HalfPatch(0.005)
+    run = lambda n: relight_views(query_surfaces(q, trace), q.sdf, sampler, np.array([[0.0, 0.0, 2.0]]),
+                                  np.full((1, 3), 3.0), ShadeOptions(kind="gltf"), subsamples=n)
+    rgb, alpha = run(2)
+    assert alpha[0, 2, 2] == 0.5 and alpha[0, 2, 1] == 1.0 and alpha[0, 2, 3] == 0.0
+    light, cam = np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.0, 0.8])
+    want = 0.0
+    for y in (-0.01, 0.01):
+        x = np.array([-0.01, y, 0.0])
+        l, v = light - x, cam - x
+        d2 = l @ l
+        l, v = l / np.sqrt(d2), v / np.linalg.norm(v)
+        want = want + gltf_reference([0, 0, 1], l, v, ALBEDO, ROUGH, METAL) * 3.0 * l[2] / d2 / 4
+    np.testing.assert_allclose(rgb[0, 0, 2, 2], want, rtol=1e-4)
+    assert rgb[0, 0, 2, 3].max() == 0.0
+    rgb1, alpha1 = run(1)
+    assert alpha1[0, 2, 2] == 1.0
 
 
 @pytest.mark.parametrize("theta_deg", [0.0, 45.0])
@@ -190,3 +232,14 @@ def test_canonical_lights_geometry():
     ax, ay = horizontal_axes((1.0, 1.0, 0.0))
     u = np.array([1.0, 1.0, 0.0]) / math.sqrt(2)
     assert abs(ax @ u) < 1e-12 and abs(ay @ u) < 1e-12 and abs(ax @ ay) < 1e-12
+
+
+def test_the_subpixel_grid_is_stratified_over_the_pixel():
+    from nepf_core.relight.render import subpixel_points
+    assert subpixel_points(1) == [(0.5, 0.5)]
+    pts = np.array(subpixel_points(3))
+    assert len(pts) == 9 and len({tuple(p) for p in pts}) == 9
+    np.testing.assert_allclose(pts.mean(0), [0.5, 0.5])                     # centred on the pixel
+    np.testing.assert_allclose(np.unique(pts[:, 0]), [1 / 6, 0.5, 5 / 6])    # one per sub-pixel column
+    with pytest.raises(ValueError, match="at least 1"):
+        subpixel_points(0)
