@@ -124,11 +124,15 @@ class PixelSampler:
         col = torch.randint(0, self.width, (n,), generator=g, device="cpu")
         return self._gather(view.to(dev), row.to(dev), col.to(dev))
 
-    def view_rays(self, k: int, stride: int = 1, at: tuple[float, float] = (0.5, 0.5)) -> RayBatch:
-        """All pixels of view ``k`` (every ``stride``-th row/column), row-major, each ray through
-        the point ``at`` (x, y in [0, 1)) of its pixel: the centre by default."""
+    def pixel_rays(self, view: Tensor, row: Tensor, col: Tensor, at: tuple[float, float] = (0.5, 0.5)) -> RayBatch:
+        """The rays of the pixels ``(view, row, col)`` ``[R]`` long, each through the point ``at``
+        (x, y in [0, 1)) of its pixel: the centre by default."""
+        return self._gather(view, row, col, at)
+
+    def view_rays(self, k: int, stride: int = 1) -> RayBatch:
+        """All pixels of view ``k`` (every ``stride``-th row/column), row-major."""
         rows = torch.arange(0, self.height, stride, device=self.device)
         cols = torch.arange(0, self.width, stride, device=self.device)
         rr, cc = torch.meshgrid(rows, cols, indexing="ij")
         view = torch.full_like(rr.reshape(-1), k)
-        return self._gather(view, rr.reshape(-1), cc.reshape(-1), at)
+        return self._gather(view, rr.reshape(-1), cc.reshape(-1))

@@ -107,6 +107,7 @@ def test_a_pixel_the_silhouette_cuts_averages_its_subpixels():
                                   np.full((1, 3), 3.0), ShadeOptions(kind="gltf"), subsamples=n)
     rgb, alpha = run(2)
     assert alpha[0, 2, 2] == 0.5 and alpha[0, 2, 1] == 1.0 and alpha[0, 2, 3] == 0.0
+    assert (alpha[0, :, 2] == 0.5).all()                                    # the whole column
     light, cam = np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.0, 0.8])
     want = 0.0
     for y in (-0.01, 0.01):
@@ -119,6 +120,25 @@ def test_a_pixel_the_silhouette_cuts_averages_its_subpixels():
     assert rgb[0, 0, 2, 3].max() == 0.0
     rgb1, alpha1 = run(1)
     assert alpha1[0, 2, 2] == 1.0
+
+
+def test_only_the_silhouette_pixels_take_the_subpixel_rays():
+    """The half patch of the test above: the centre rays of columns 0-2 hit (x = -0.08, -0.04, 0),
+    of 3-4 miss, so columns 2 and 3 (10 pixels) have both in their 3 x 3 neighbourhood; the
+    render casts 25 centre rays and 4 x 10 sub-pixel rays, and the interior keeps its centre ray."""
+    sampler = PixelSampler(top_camera(), "cpu")
+    q = HalfPatch(0.005)
+    inner = query_surfaces(q, TraceConfig(hit_eps=1e-6, min_step=1e-7))
+    seen = []
+
+    def counting(rays):
+        seen.append(len(rays))
+        return inner(rays)
+    light = (np.array([[0.0, 0.0, 2.0]]), np.full((1, 3), 3.0), ShadeOptions(kind="gltf"))
+    rgb, alpha = relight_views(counting, q.sdf, sampler, *light)
+    assert sum(seen) == 25 + 4 * 10
+    rgb1, _ = relight_views(inner, q.sdf, sampler, *light, subsamples=1)
+    np.testing.assert_array_equal(rgb[:, :, :, :2], rgb1[:, :, :, :2])     # columns 0-1: the centre ray
 
 
 @pytest.mark.parametrize("theta_deg", [0.0, 45.0])

@@ -10,14 +10,16 @@ shadows traced through the SDF (:mod:`.shade`, :mod:`.tracing`). Two ways to fin
 * :func:`query_surfaces`, for any FieldQuery (export previews, analytic test scenes): sphere
   tracing (:func:`.tracing.trace_primary`), coverage 0 or 1.
 
-Each pixel is the mean of ``n x n`` rays through a stratified grid of points in it
-(:data:`PIXEL_SUBSAMPLES`): ``rgb = (1/n^2) sum_j alpha_j L_j``, ``alpha = (1/n^2) sum_j alpha_j``. Why: a
-camera (and the ground truth the relight is scored against) integrates over the pixel's area, while
-one ray through its centre sees a silhouette pixel as all surface or all background. A model whose
-density is sharp at its silhouette then scores worse than a blurry one on a scene whose only error
-is at its edge (bench/RESULTS.md v64: on sphere_diffuse 67-88 % of the relight's squared error lay
-within 2 px of the silhouette, and a run whose coverage was 0 or 1 on half of the partly covered
-pixels lost 2.3 dB there while its interior was 2.2 dB better).
+Silhouette pixels are the mean of ``n x n`` rays through a stratified grid of points in them
+(:data:`PIXEL_SUBSAMPLES`): ``rgb = (1/n^2) sum_j alpha_j L_j``, ``alpha = (1/n^2) sum_j alpha_j``.
+Why: a camera (and the ground truth a relight is scored against) integrates over the pixel's
+area, while one ray through its centre sees a silhouette pixel as all surface or all background;
+a model whose density is sharp at its silhouette then scores worse than a blurry one on a scene
+whose error is mostly at its edge (bench/RESULTS.md v64, sphere_diffuse). A silhouette pixel is one
+whose centre ray is partly covered (``0.02 < alpha < 0.98``) or whose 3 x 3 neighbourhood holds
+both covered and uncovered centres (:func:`silhouette_pixels`); the rest keep their centre ray,
+so the render costs ``1 + n^2 f`` rays per pixel for a silhouette share ``f`` (a few per cent),
+not ``n^2``. Edges inside the surface (shadows, texture) keep one ray.
 
 Everything is in the normalised frame: lights are mapped there with
 :func:`.lights.lights_to_normalised`, which keeps the irradiance of the world frame.
@@ -36,8 +38,11 @@ from nepf_core.relight.shade import ShadeOptions, SurfaceSamples, shade_under_li
 from nepf_core.relight.tracing import SdfFn, TraceConfig, light_visibility, trace_primary
 
 PIXEL_SUBSAMPLES = 2
-"""``n``: each relit pixel averages ``n x n`` rays through the centres of an ``n x n`` grid of
-sub-pixels (4 rays per pixel; the render costs ``n^2`` times one ray per pixel)."""
+"""``n``: a silhouette pixel averages ``n x n`` rays through the centres of an ``n x n`` grid of
+sub-pixels (module docstring)."""
+
+PARTIAL_COVERAGE = 0.02
+"""A centre ray with ``PARTIAL_COVERAGE < alpha < 1 - PARTIAL_COVERAGE`` is partly covered."""
 
 SurfaceFn = Callable[[RayBatch], tuple[SurfaceSamples, Tensor]]
 """``rays -> (surface samples of every ray, coverage alpha [R] in [0, 1])``."""
@@ -86,14 +91,25 @@ def subpixel_points(n: int) -> list[tuple[float, float]]:
     return [((i + 0.5) / n, (j + 0.5) / n) for j in range(n) for i in range(n)]
 
 
+def silhouette_pixels(alpha: Tensor) -> Tensor:
+    """``[H, W]`` bool of a view's centre-ray coverage ``alpha [H, W]``: partly covered, or a 3 x 3
+    neighbourhood holding both covered (``alpha > 0.5``) and uncovered centres."""
+    import torch.nn.functional as F
+    covered = (alpha > 0.5).float()[None, None]
+    mixed = F.max_pool2d(covered, 3, stride=1, padding=1) > -F.max_pool2d(-covered, 3, stride=1, padding=1)
+    partial = (alpha > PARTIAL_COVERAGE) & (alpha < 1.0 - PARTIAL_COVERAGE)
+    return mixed[0, 0] | partial
+
+
 def relight_views(surfaces: SurfaceFn, sdf: SdfFn, sampler: PixelSampler, positions: np.ndarray,
                   intensities: np.ndarray, opts: ShadeOptions, *, trace: TraceConfig | None = None,
                   shadows: bool = True, chunk: int = 4096,
                   subsamples: int = PIXEL_SUBSAMPLES) -> tuple[np.ndarray, np.ndarray]:
     """Every view of ``sampler`` under ``K`` point lights (normalised frame: ``positions [K, 3]``,
     ``intensities [K, 3]``). Returns ``rgb [K, V, H, W, 3]`` float32 linear radiance composited
-    on black (``alpha * L``, so 0 where nothing is covered) and ``alpha [V, H, W]`` float32, each
-    pixel the mean over ``subsamples x subsamples`` rays in it (module docstring)."""
+    on black (``alpha * L``, so 0 where nothing is covered) and ``alpha [V, H, W]`` float32; the
+    silhouette pixels are the mean over ``subsamples x subsamples`` rays in them (module docstring;
+    1: every pixel its centre ray)."""
     trace = trace or TraceConfig()
     dev = sampler.device
     P = torch.as_tensor(positions, dtype=torch.float32, device=dev)
@@ -102,16 +118,24 @@ def relight_views(surfaces: SurfaceFn, sdf: SdfFn, sampler: PixelSampler, positi
     def visibility(x: Tensor, n: Tensor, p: Tensor) -> Tensor:
         return light_visibility(sdf, x, n, p, trace)
 
+    vis = visibility if shadows else None
     K, V, H, W = P.shape[0], sampler.n_views, sampler.height, sampler.width
     points = subpixel_points(subsamples)
     rgb = np.zeros((K, V, H, W, 3), np.float32)
     alpha = np.zeros((V, H, W), np.float32)
     for v in range(V):
-        for at in points:
-            L, cov = _relight_rays(surfaces, sampler.view_rays(v, at=at), P, I, opts,
-                                   visibility if shadows else None, chunk)
-            rgb[:, v] += L.reshape(K, H, W, 3).numpy() / len(points)
-            alpha[v] += cov.reshape(H, W).numpy() / len(points)
+        L, cov = _relight_rays(surfaces, sampler.view_rays(v), P, I, opts, vis, chunk)
+        L, cov = L.reshape(K, H, W, 3), cov.reshape(H, W)
+        edge = silhouette_pixels(cov) if len(points) > 1 else torch.zeros(H, W, dtype=torch.bool)
+        if edge.any():
+            row, col = (t.to(dev) for t in edge.nonzero(as_tuple=True))
+            view = torch.full_like(row, v)
+            L_sum, cov_sum = 0.0, 0.0
+            for at in points:
+                Lj, cj = _relight_rays(surfaces, sampler.pixel_rays(view, row, col, at), P, I, opts, vis, chunk)
+                L_sum, cov_sum = L_sum + Lj, cov_sum + cj
+            L[:, edge], cov[edge] = L_sum / len(points), cov_sum / len(points)
+        rgb[:, v], alpha[v] = L.numpy(), cov.numpy()
     return rgb, alpha
 
 
