@@ -31,6 +31,7 @@ from typing import Callable
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 from nepf_core.rays import PixelSampler, RayBatch
@@ -94,7 +95,6 @@ def subpixel_points(n: int) -> list[tuple[float, float]]:
 def silhouette_pixels(alpha: Tensor) -> Tensor:
     """``[H, W]`` bool of a view's centre-ray coverage ``alpha [H, W]``: partly covered, or a 3 x 3
     neighbourhood holding both covered (``alpha > 0.5``) and uncovered centres."""
-    import torch.nn.functional as F
     covered = (alpha > 0.5).float()[None, None]
     mixed = F.max_pool2d(covered, 3, stride=1, padding=1) > -F.max_pool2d(-covered, 3, stride=1, padding=1)
     partial = (alpha > PARTIAL_COVERAGE) & (alpha < 1.0 - PARTIAL_COVERAGE)
