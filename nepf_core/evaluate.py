@@ -20,30 +20,56 @@ import torch
 
 from nepf_core.bsdf import diffuse_only_material
 from nepf_core.color import linear_to_srgb
-from nepf_core.rays import PixelSampler
+from nepf_core.rays import PixelSampler, RayBatch
+from nepf_core.render.antialias import PIXEL_SUBSAMPLES, silhouette_subpixel_rays
 from nepf_core.render.renderer import RenderConfig, Shading, render_rays
 
 CHANNELS = ("pbr", "radiance", "albedo", "roughness", "metallic", "normal", "light_dir",
             "light_intensity", "alpha", "depth")
+COMPOSITED = ("pbr", "radiance", "alpha")
+"""The channels that are coverage-weighted sums over a ray (``alpha L``, ``alpha``): a silhouette
+pixel's value is their mean over its sub-pixel rays (:mod:`nepf_core.render.antialias`)."""
 
 
 def render_view(model, sampler: PixelSampler, k: int, cfg: RenderConfig, *, stride: int = 1,
                 chunk: int = 2048, rotation: np.ndarray | None = None,
-                shading: Shading | None = None) -> dict[str, np.ndarray]:
+                shading: Shading | None = None, subsamples: int = PIXEL_SUBSAMPLES) -> dict[str, np.ndarray]:
     """Render every channel of view ``k``: dict of ``[H', W', C]`` float32 arrays.
 
     ``pbr`` is the surface PBR at the max-weight sample composited by the opacity
     ``alpha = sum w`` (over the background model when there is one). Normals and light
     directions are rotated by ``rotation`` (3x3, normalised -> world) when given. ``shading``:
     the run's shading model (``RunState.shading()``; None: ``cfg.specular``, no fade).
+    The :data:`COMPOSITED` channels of silhouette pixels are the mean over ``subsamples x
+    subsamples`` rays in them (:mod:`nepf_core.render.antialias`; 1: every pixel its centre ray).
     """
     shading = shading if shading is not None else Shading(specular=cfg.specular)
-    rays = sampler.view_rays(k, stride)
     H = len(range(0, sampler.height, stride))
     W = len(range(0, sampler.width, stride))
-    acc: dict[str, list] = {c: [] for c in CHANNELS}
     was_training = model.training
     model.eval()
+    res = _render_channels(model, sampler.view_rays(k, stride), cfg, shading, chunk)
+    res = {c: v.reshape(H, W, -1) for c, v in res.items()}
+    edge, subrays = silhouette_subpixel_rays(sampler, k, res["alpha"][..., 0], subsamples, stride)
+    if subrays:
+        sums = {c: 0.0 for c in COMPOSITED}
+        for rays in subrays:
+            sub = _render_channels(model, rays, cfg, shading, chunk)
+            sums = {c: sums[c] + sub[c] for c in COMPOSITED}
+        for c in COMPOSITED:
+            res[c][edge] = sums[c] / len(subrays)
+    model.train(was_training)
+    res = {c: v.numpy() for c, v in res.items()}
+    if rotation is not None:
+        for c in ("normal", "light_dir"):
+            res[c] = (res[c] @ rotation.T).astype(np.float32)
+    return res
+
+
+def _render_channels(model, rays: RayBatch, cfg: RenderConfig, shading: Shading,
+                     chunk: int) -> dict[str, torch.Tensor]:
+    """Every channel of :data:`CHANNELS` of ``R`` rays, ``chunk`` at a time: ``{c: [R, C]}`` float32 (CPU)."""
+    acc: dict[str, list] = {c: [] for c in CHANNELS}
     for a in range(0, len(rays), chunk):
         rb = rays.slice(a, a + chunk)
         out = render_rays(model, rb, cfg, train=False, shading=shading)
@@ -61,12 +87,7 @@ def render_view(model, sampler: PixelSampler, k: int, cfg: RenderConfig, *, stri
                     "light_intensity": s.intensity[:, None], "alpha": alpha, "depth": out.depth[:, None]}
             for c in CHANNELS:
                 acc[c].append(vals[c].detach().float().cpu())
-    model.train(was_training)
-    res = {c: torch.cat(v).reshape(H, W, -1).numpy() for c, v in acc.items()}
-    if rotation is not None:
-        for c in ("normal", "light_dir"):
-            res[c] = (res[c] @ rotation.T).astype(np.float32)
-    return res
+    return {c: torch.cat(v) for c, v in acc.items()}
 
 
 def psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:

@@ -255,7 +255,7 @@ def test_canonical_lights_geometry():
 
 
 def test_the_subpixel_grid_is_stratified_over_the_pixel():
-    from nepf_core.relight.render import subpixel_points
+    from nepf_core.render.antialias import subpixel_points
     assert subpixel_points(1) == [(0.5, 0.5)]
     pts = np.array(subpixel_points(3))
     assert len(pts) == 9 and len({tuple(p) for p in pts}) == 9

@@ -11,15 +11,8 @@ shadows traced through the SDF (:mod:`.shade`, :mod:`.tracing`). Two ways to fin
   tracing (:func:`.tracing.trace_primary`), coverage 0 or 1.
 
 Silhouette pixels are the mean of ``n x n`` rays through a stratified grid of points in them
-(:data:`PIXEL_SUBSAMPLES`): ``rgb = (1/n^2) sum_j alpha_j L_j``, ``alpha = (1/n^2) sum_j alpha_j``.
-Why: a camera (and the ground truth a relight is scored against) integrates over the pixel's
-area, while one ray through its centre sees a silhouette pixel as all surface or all background;
-a model whose density is sharp at its silhouette then scores worse than a blurry one on a scene
-whose error is mostly at its edge (bench/RESULTS.md v64, sphere_diffuse). A silhouette pixel is one
-whose centre ray is partly covered (``0.02 < alpha < 0.98``) or whose 3 x 3 neighbourhood holds
-both covered and uncovered centres (:func:`silhouette_pixels`); the rest keep their centre ray,
-so the render costs ``1 + n^2 f`` rays per pixel for a silhouette share ``f`` (a few per cent),
-not ``n^2``. Edges inside the surface (shadows, texture) keep one ray.
+(:mod:`nepf_core.render.antialias`): ``rgb = (1/n^2) sum_j alpha_j L_j``, ``alpha = (1/n^2) sum_j
+alpha_j``, as a camera and the ground truth integrate a pixel over its area.
 
 Everything is in the normalised frame: lights are mapped there with
 :func:`.lights.lights_to_normalised`, which keeps the irradiance of the world frame.
@@ -31,19 +24,12 @@ from typing import Callable
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from nepf_core.rays import PixelSampler, RayBatch
+from nepf_core.render.antialias import PIXEL_SUBSAMPLES, silhouette_subpixel_rays
 from nepf_core.relight.shade import ShadeOptions, SurfaceSamples, shade_under_lights
 from nepf_core.relight.tracing import SdfFn, TraceConfig, light_visibility, trace_primary
-
-PIXEL_SUBSAMPLES = 2
-"""``n``: a silhouette pixel averages ``n x n`` rays through the centres of an ``n x n`` grid of
-sub-pixels (module docstring)."""
-
-PARTIAL_COVERAGE = 0.02
-"""A centre ray with ``PARTIAL_COVERAGE < alpha < 1 - PARTIAL_COVERAGE`` is partly covered."""
 
 SurfaceFn = Callable[[RayBatch], tuple[SurfaceSamples, Tensor]]
 """``rays -> (surface samples of every ray, coverage alpha [R] in [0, 1])``."""
@@ -84,23 +70,6 @@ def query_surfaces(query, trace: TraceConfig) -> SurfaceFn:
     return surfaces
 
 
-def subpixel_points(n: int) -> list[tuple[float, float]]:
-    """The centres ``((i + 0.5) / n, (j + 0.5) / n)`` of an ``n x n`` grid of sub-pixels, in pixel
-    units from the pixel's corner (``n = 1``: the pixel's centre)."""
-    if n < 1:
-        raise ValueError(f"sub-pixel grid must be at least 1 x 1 (got {n})")
-    return [((i + 0.5) / n, (j + 0.5) / n) for j in range(n) for i in range(n)]
-
-
-def silhouette_pixels(alpha: Tensor) -> Tensor:
-    """``[H, W]`` bool of a view's centre-ray coverage ``alpha [H, W]``: partly covered, or a 3 x 3
-    neighbourhood holding both covered (``alpha > 0.5``) and uncovered centres."""
-    covered = (alpha > 0.5).float()[None, None]
-    mixed = F.max_pool2d(covered, 3, stride=1, padding=1) > -F.max_pool2d(-covered, 3, stride=1, padding=1)
-    partial = (alpha > PARTIAL_COVERAGE) & (alpha < 1.0 - PARTIAL_COVERAGE)
-    return mixed[0, 0] | partial
-
-
 def relight_views(surfaces: SurfaceFn, sdf: SdfFn, sampler: PixelSampler, positions: np.ndarray,
                   intensities: np.ndarray, opts: ShadeOptions, *, trace: TraceConfig | None = None,
                   shadows: bool = True, chunk: int = 4096,
@@ -120,21 +89,18 @@ def relight_views(surfaces: SurfaceFn, sdf: SdfFn, sampler: PixelSampler, positi
 
     vis = visibility if shadows else None
     K, V, H, W = P.shape[0], sampler.n_views, sampler.height, sampler.width
-    points = subpixel_points(subsamples)
     rgb = np.zeros((K, V, H, W, 3), np.float32)
     alpha = np.zeros((V, H, W), np.float32)
     for v in range(V):
         L, cov = _relight_rays(surfaces, sampler.view_rays(v), P, I, opts, vis, chunk)
         L, cov = L.reshape(K, H, W, 3), cov.reshape(H, W)
-        edge = silhouette_pixels(cov) if len(points) > 1 else torch.zeros(H, W, dtype=torch.bool)
-        if edge.any():
-            row, col = (t.to(dev) for t in edge.nonzero(as_tuple=True))
-            view = torch.full_like(row, v)
+        edge, subrays = silhouette_subpixel_rays(sampler, v, cov, subsamples)
+        if subrays:
             L_sum, cov_sum = 0.0, 0.0
-            for at in points:
-                Lj, cj = _relight_rays(surfaces, sampler.pixel_rays(view, row, col, at), P, I, opts, vis, chunk)
+            for rays in subrays:
+                Lj, cj = _relight_rays(surfaces, rays, P, I, opts, vis, chunk)
                 L_sum, cov_sum = L_sum + Lj, cov_sum + cj
-            L[:, edge], cov[edge] = L_sum / len(points), cov_sum / len(points)
+            L[:, edge], cov[edge] = L_sum / len(subrays), cov_sum / len(subrays)
         rgb[:, v], alpha[v] = L.numpy(), cov.numpy()
     return rgb, alpha
 
